@@ -1,0 +1,28 @@
+"""Exact nearest-neighbour map: distance to the closest training descriptor."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from relocfw.errors import DataError
+from relocfw.interfaces import SimilarityIndex
+from relocfw.standardise import ZScore, check_features, nearest
+
+
+class ExhaustiveIndex(SimilarityIndex):
+    """Keeps every standardised training descriptor; the exact baseline for k-means."""
+
+    def fit(self, features: np.ndarray) -> None:
+        features = check_features(features)
+        self.zscore = ZScore().fit(features)
+        self.points = self.zscore(features)
+
+    def nearest(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance to and index of the nearest training descriptor."""
+        if not hasattr(self, "points"):
+            raise DataError("the index is not fitted yet: call fit() first")
+        features = check_features(features, self.points.shape[1])
+        return nearest(self.zscore(features), self.points)
+
+    def distance(self, features: np.ndarray) -> np.ndarray:
+        return self.nearest(features)[0]

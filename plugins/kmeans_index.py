@@ -1,0 +1,47 @@
+"""The paper's map: k-means centres of standardised training descriptors."""
+
+from __future__ import annotations
+
+import numpy as np
+from sklearn.cluster import KMeans
+
+from relocfw.errors import ConfigError, DataError
+from relocfw.interfaces import SimilarityIndex
+from relocfw.standardise import ZScore, check_features, nearest
+
+
+class KMeansIndex(SimilarityIndex):
+    """Distance of a descriptor to the nearest of k cluster centres.
+
+    Args:
+        k: number of clusters; at most the number of training descriptors.
+        seed: seeds k-means++ initialisation, so a map is reproducible.
+        n_init: k-means restarts; the best (lowest inertia) is kept.
+    """
+
+    def __init__(self, k: int = 40, seed: int = 0, n_init: int = 4) -> None:
+        if int(k) < 1:
+            raise ConfigError(f"k must be at least 1, got {k}")
+        if int(n_init) < 1:
+            raise ConfigError(f"n_init must be at least 1, got {n_init}")
+        self.k = int(k)
+        self.seed = int(seed)
+        self.n_init = int(n_init)
+
+    def fit(self, features: np.ndarray) -> None:
+        features = check_features(features)
+        if self.k > len(features):
+            raise ConfigError(
+                f"k={self.k} is more clusters than training descriptors ({len(features)}); "
+                f"choose k <= {len(features)}"
+            )
+        self.zscore = ZScore().fit(features)
+        kmeans = KMeans(n_clusters=self.k, n_init=self.n_init, random_state=self.seed)
+        kmeans.fit(self.zscore(features))
+        self.centres = kmeans.cluster_centers_
+
+    def distance(self, features: np.ndarray) -> np.ndarray:
+        if not hasattr(self, "centres"):
+            raise DataError("the index is not fitted yet: call fit() first")
+        features = check_features(features, self.centres.shape[1])
+        return nearest(self.zscore(features), self.centres)[0]

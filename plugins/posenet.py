@@ -1,0 +1,158 @@
+"""PoseNet: GoogLeNet trunk, two auxiliary pose heads and a main head.
+
+The main head's 2048-d fully connected layer is the image descriptor used by the
+similarity index. `weights=FILE` loads an ImageNet GoogLeNet state_dict saved from
+torchvision (`torch.save(googlenet(weights=...).state_dict(), FILE)`), for transfer
+learning; nothing is downloaded at run time.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from relocfw.plugins.googlenet import ConvBnRelu, GoogLeNetTrunk, scaled
+from torch import nn
+
+from relocfw.errors import ConfigError, DataError
+from relocfw.interfaces import Backbone
+from relocfw.values import PoseOutput
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+# torchvision modules with no counterpart here: the ImageNet classifiers.
+DROPPED_PREFIXES = ("fc.", "aux1.fc2.", "aux2.fc2.")
+
+
+class PoseRegressor(nn.Module):
+    """Position (3) and orientation (unit quaternion, 4) from a feature vector."""
+
+    def __init__(self, in_features: int) -> None:
+        super().__init__()
+        self.position = nn.Linear(in_features, 3)
+        self.orientation = nn.Linear(in_features, 4)
+        # Start at the identity rotation so early training sees sensible quaternions.
+        with torch.no_grad():
+            self.orientation.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0]))
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.position(x), nn.functional.normalize(self.orientation(x), dim=1)
+
+
+class AuxiliaryHead(nn.Module):
+    """PoseNet's auxiliary regressor on an intermediate feature map (torchvision names)."""
+
+    def __init__(self, in_channels: int, width: float) -> None:
+        super().__init__()
+        self.conv = ConvBnRelu(in_channels, scaled(128, width), 1)
+        self.fc1 = nn.Linear(scaled(128, width) * 16, scaled(1024, width))
+        self.dropout = nn.Dropout(0.7)
+        self.pose = PoseRegressor(scaled(1024, width))
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.conv(nn.functional.adaptive_avg_pool2d(x, 4))
+        return self.pose(self.dropout(torch.relu(self.fc1(torch.flatten(x, 1)))))
+
+
+class PoseNet(Backbone):
+    """GoogLeNet PoseNet (Kendall et al. 2015) with a 2048-d descriptor layer.
+
+    Args:
+        input_size: side of the square network input in pixels (paper: 224).
+        feature_dim: length of the descriptor layer (paper: 2048).
+        width: channel multiplier; 1.0 is GoogLeNet, smaller only for quick tests.
+        dropout: dropout before the main pose regressor (paper: 0.5).
+        weights: optional torchvision GoogLeNet ImageNet state_dict file.
+    """
+
+    def __init__(
+        self,
+        input_size: int = 224,
+        feature_dim: int = 2048,
+        width: float = 1.0,
+        dropout: float = 0.5,
+        weights: str | None = None,
+    ) -> None:
+        super().__init__()
+        if input_size < 32:
+            raise ConfigError(f"input_size must be at least 32 pixels, got {input_size}")
+        if feature_dim < 1:
+            raise ConfigError(f"feature_dim must be positive, got {feature_dim}")
+        if not 0 < width <= 4:
+            raise ConfigError(f"width must be in (0, 4], got {width}")
+        if not 0 <= dropout < 1:
+            raise ConfigError(f"dropout must be in [0, 1), got {dropout}")
+        self.input_size = int(input_size)
+        self.feature_dim = int(feature_dim)
+        self.trunk = GoogLeNetTrunk(width)
+        self.aux1 = AuxiliaryHead(self.trunk.aux_channels[0], width)
+        self.aux2 = AuxiliaryHead(self.trunk.aux_channels[1], width)
+        self.descriptor = nn.Linear(self.trunk.out_channels, self.feature_dim)
+        self.dropout = nn.Dropout(dropout)
+        self.pose = PoseRegressor(self.feature_dim)
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        if weights:
+            if width != 1.0:
+                raise ConfigError("backbone.weights needs width=1.0 (ImageNet GoogLeNet)")
+            load_imagenet_weights(self, Path(weights))
+
+    def forward(self, images: torch.Tensor) -> PoseOutput:
+        at_4a, at_4d, at_5b = self.trunk((images - self.mean) / self.std)
+        pooled = torch.flatten(nn.functional.adaptive_avg_pool2d(at_5b, 1), 1)
+        features = torch.relu(self.descriptor(pooled))
+        position, quaternion = self.pose(self.dropout(features))
+        auxiliary: tuple = ()
+        if self.training:
+            auxiliary = tuple(
+                (self.to_world_positions(p), q) for p, q in (self.aux1(at_4a), self.aux2(at_4d))
+            )
+        return PoseOutput(self.to_world_positions(position), quaternion, features, auxiliary)
+
+
+def torchvision_to_posenet_key(key: str) -> str | None:
+    """Name in PoseNet of a torchvision GoogLeNet parameter, or None if it has none."""
+    if key.startswith(DROPPED_PREFIXES):
+        return None
+    if key.startswith(("aux1.", "aux2.")):
+        return key
+    return "trunk." + key
+
+
+def load_imagenet_weights(model: PoseNet, path: Path) -> None:
+    """Copy a torchvision GoogLeNet state_dict into the trunk and auxiliary layers.
+
+    Every trunk parameter must be provided with the right shape; anything missing is a
+    wrong file, not something to start from random silently.
+    """
+    if not path.is_file():
+        raise DataError(f"backbone.weights: file not found: {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a bad file
+        raise DataError(f"backbone.weights: cannot read {path}: {error}") from error
+    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        state = state["state_dict"]
+    if not isinstance(state, dict):
+        raise DataError(f"backbone.weights: {path} does not hold a state_dict")
+    ours = model.state_dict()
+    mapped = {}
+    for key, value in state.items():
+        target = torchvision_to_posenet_key(key)
+        if target is None:
+            continue
+        if target not in ours:
+            raise DataError(f"backbone.weights: {path}: unexpected key {key!r}")
+        if ours[target].shape != value.shape:
+            raise DataError(
+                f"backbone.weights: {path}: {key!r} has shape {tuple(value.shape)}, "
+                f"expected {tuple(ours[target].shape)}"
+            )
+        mapped[target] = value
+    missing = [k for k in ours if k.startswith("trunk.") and k not in mapped]
+    if missing:
+        raise DataError(
+            f"backbone.weights: {path} lacks {len(missing)} GoogLeNet parameters, "
+            f"e.g. {missing[0]!r} (expected torchvision's googlenet key layout)"
+        )
+    model.load_state_dict(mapped, strict=False)

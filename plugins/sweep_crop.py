@@ -1,0 +1,31 @@
+"""Exhaustive sweep: score every crop offset (or every stride-th) and keep the best."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from relocfw.errors import ConfigError
+from relocfw.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span
+from relocfw.values import Crop
+
+
+class SweepCrop(CropSearch):
+    """The exact minimum over a grid of offsets; the upper bound for any search.
+
+    Args:
+        stride: pixels between tried offsets; 1 tries every offset. The last offset
+            (the far edge) is always tried.
+    """
+
+    def __init__(self, stride: int = 1) -> None:
+        if int(stride) < 1:
+            raise ConfigError(f"stride must be at least 1, got {stride}")
+        self.stride = int(stride)
+
+    def search(self, width: int, height: int, distance: CropDistance) -> Crop:
+        _, span = crop_side_and_span(width, height)
+        offsets = list(range(0, span + 1, self.stride))
+        if offsets[-1] != span:
+            offsets.append(span)
+        crops = [crop_at(o, width, height) for o in offsets]
+        return crops[int(np.argmin(distance(crops)))]

@@ -1,0 +1,51 @@
+"""What every dataset yields: image files with their camera-to-world poses."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from relocfw.geometry import mean_quaternion
+from relocfw.imaging import read_rgb
+from relocfw.progress import Progress
+from relocfw.values import Pose
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One image of a dataset and where the camera was."""
+
+    name: str  # unique within the dataset, e.g. "seq-01/frame-000000"
+    image_path: Path
+    pose: Pose
+
+
+def positions_of(frames: Sequence[Frame]) -> np.ndarray:
+    return np.stack([f.pose.position for f in frames])
+
+
+def quaternions_of(frames: Sequence[Frame]) -> np.ndarray:
+    return np.stack([f.pose.quaternion for f in frames])
+
+
+def mean_pose(frames: Sequence[Frame]) -> Pose:
+    """Average training position and rotation: the no-information answer."""
+    return Pose(positions_of(frames).mean(axis=0), mean_quaternion(quaternions_of(frames)))
+
+
+def read_images(
+    frames: Sequence[Frame], label: str = "loading images", quiet: bool = False, threads: int = 4
+) -> list[np.ndarray]:
+    """Decode all frames' images; OpenCV releases the GIL, so threads decode in parallel."""
+    progress = Progress(len(frames), label, quiet=quiet)
+    images = []
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        for image in pool.map(read_rgb, [f.image_path for f in frames]):
+            images.append(image)
+            progress.advance()
+    progress.close()
+    return images

@@ -1,0 +1,134 @@
+"""Running a method over a test split and measuring its errors."""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from relocfw.data.frames import Frame
+from relocfw.geometry import orientation_error_deg, position_error
+from relocfw.pipeline import Relocalizer
+from relocfw.progress import Progress
+from relocfw.values import Crop, Localization, Pose
+
+POSITION_THRESHOLD_M = 0.5
+ORIENTATION_THRESHOLD_DEG = 15.0
+
+
+@dataclass(frozen=True)
+class MethodResult:
+    """One method's answers on a split, aligned with its frames."""
+
+    method: str
+    frames: tuple[Frame, ...]
+    answers: tuple[Localization, ...]
+
+    def position_errors(self) -> np.ndarray:
+        return position_error(
+            np.stack([a.pose.position for a in self.answers]),
+            np.stack([f.pose.position for f in self.frames]),
+        )
+
+    def orientation_errors(self) -> np.ndarray:
+        return orientation_error_deg(
+            np.stack([a.pose.quaternion for a in self.answers]),
+            np.stack([f.pose.quaternion for f in self.frames]),
+        )
+
+
+def evaluate(
+    method: str,
+    relocalizer: Relocalizer,
+    frames: Sequence[Frame],
+    images: Sequence[np.ndarray],
+    quiet: bool = False,
+) -> MethodResult:
+    """Localize every image with `relocalizer`."""
+    progress = Progress(len(frames), f"relocalizing ({method})", quiet=quiet)
+    answers = []
+    for image in images:
+        answers.append(relocalizer.localize(image))
+        progress.advance()
+    progress.close()
+    return MethodResult(method, tuple(frames), tuple(answers))
+
+
+def constant_answer(method: str, pose: Pose, frames: Sequence[Frame]) -> MethodResult:
+    """Every query answered with the same pose: the floor any method must beat."""
+    answer = Localization(pose, Crop(0, 0, 0), float("nan"), 0, 0.0)
+    return MethodResult(method, tuple(frames), tuple(answer for _ in frames))
+
+
+def summarise(result: MethodResult) -> dict[str, float | int | str]:
+    """Median and mean errors, the share within 0.5 m and 15 deg, time per query."""
+    positions = result.position_errors()
+    orientations = result.orientation_errors()
+    within = (positions < POSITION_THRESHOLD_M) & (orientations < ORIENTATION_THRESHOLD_DEG)
+    return {
+        "method": result.method,
+        "queries": len(positions),
+        "median_position_m": float(np.median(positions)),
+        "mean_position_m": float(np.mean(positions)),
+        "median_orientation_deg": float(np.median(orientations)),
+        "mean_orientation_deg": float(np.mean(orientations)),
+        "share_within_0.5m_15deg": float(np.mean(within)),
+        "mean_seconds_per_query": float(np.mean([a.seconds for a in result.answers])),
+        "mean_network_passes": float(np.mean([a.evaluations for a in result.answers])),
+    }
+
+
+CSV_COLUMNS = (
+    "method",
+    "frame",
+    "true_x",
+    "true_y",
+    "true_z",
+    "true_qw",
+    "true_qx",
+    "true_qy",
+    "true_qz",
+    "est_x",
+    "est_y",
+    "est_z",
+    "est_qw",
+    "est_qx",
+    "est_qy",
+    "est_qz",
+    "position_error_m",
+    "orientation_error_deg",
+    "crop_x",
+    "crop_y",
+    "crop_size",
+    "distance",
+    "network_passes",
+    "seconds",
+)
+
+
+def per_image_csv(results: Sequence[MethodResult]) -> str:
+    """One row per method and query image, everything needed to redo the statistics."""
+    stream = io.StringIO()
+    writer = csv.writer(stream)
+    writer.writerow(CSV_COLUMNS)
+    for result in results:
+        rows = zip(
+            result.frames,
+            result.answers,
+            result.position_errors(),
+            result.orientation_errors(),
+            strict=True,
+        )
+        for frame, answer, pos_err, ori_err in rows:
+            writer.writerow(
+                [result.method, frame.name]
+                + [f"{v:.6f}" for v in (*frame.pose.position, *frame.pose.quaternion)]
+                + [f"{v:.6f}" for v in (*answer.pose.position, *answer.pose.quaternion)]
+                + [f"{pos_err:.6f}", f"{ori_err:.4f}"]
+                + [answer.crop.x, answer.crop.y, answer.crop.size]
+                + [f"{answer.distance:.6f}", answer.evaluations, f"{answer.seconds:.6f}"]
+            )
+    return stream.getvalue()

@@ -1,0 +1,83 @@
+"""The three plugin interfaces. Implementations live in plugins/ or in other packages."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+
+import numpy as np
+import torch
+
+from relocfw.values import Crop, PoseOutput
+
+CropDistance = Callable[[Sequence[Crop]], np.ndarray]
+"""Scores a batch of crops in one forward pass: [n] distances to the map, lower is closer."""
+
+
+class Backbone(torch.nn.Module, ABC):
+    """Image batch -> pose and descriptor.
+
+    Inputs are float tensors [B, 3, input_size, input_size], RGB in [0, 1]; the backbone
+    owns its own normalisation so weights and preprocessing cannot drift apart.
+
+    Positions are regressed in a normalised frame (training positions minus their mean,
+    divided by their spread) and mapped back here, because a network regresses values
+    near zero with unit spread far better than raw world coordinates. The statistics are
+    buffers, so they travel with the checkpoint.
+    """
+
+    input_size: int
+    feature_dim: int
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("position_mean", torch.zeros(3))
+        self.register_buffer("position_scale", torch.ones(()))
+
+    def set_position_normalisation(self, mean: np.ndarray, scale: float) -> None:
+        """Fix the frame positions are regressed in; call once before training."""
+        self.position_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
+        self.position_scale.fill_(float(scale))
+
+    def to_world_positions(self, normalised: torch.Tensor) -> torch.Tensor:
+        """Map the network's raw position output to metres in the world frame."""
+        return normalised * self.position_scale + self.position_mean
+
+    @abstractmethod
+    def forward(self, images: torch.Tensor) -> PoseOutput:
+        """Pose and descriptor of each image in the batch."""
+
+
+class SimilarityIndex(ABC):
+    """The map: training descriptors, queried for how far a descriptor is from it."""
+
+    @abstractmethod
+    def fit(self, features: np.ndarray) -> None:
+        """Build the map from [N, D] training descriptors."""
+
+    @abstractmethod
+    def distance(self, features: np.ndarray) -> np.ndarray:
+        """[n] distance of each of [n, D] descriptors to the map; lower = more similar."""
+
+
+class CropSearch(ABC):
+    """Chooses the square crop of a width x height image whose descriptor is closest.
+
+    The square's side is min(width, height); a search moves it along the longer axis.
+    """
+
+    @abstractmethod
+    def search(self, width: int, height: int, distance: CropDistance) -> Crop:
+        """Return the chosen crop; `distance` scores many crops per call."""
+
+
+def crop_side_and_span(width: int, height: int) -> tuple[int, int]:
+    """Square side and how far it can slide along the longer axis."""
+    side = min(width, height)
+    return side, max(width, height) - side
+
+
+def crop_at(offset: int, width: int, height: int) -> Crop:
+    """The square crop at `offset` pixels along the longer axis."""
+    side = min(width, height)
+    return Crop(offset, 0, side) if width >= height else Crop(0, offset, side)

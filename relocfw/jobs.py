@@ -1,0 +1,103 @@
+"""The CLI's tasks as plain functions: objects and paths in, files and summaries out."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import torch
+
+from relocfw.checkpoints import settings_key, write_text_atomic
+from relocfw.data.frames import Frame, mean_pose, read_images
+from relocfw.errors import DataError
+from relocfw.evaluation import constant_answer, evaluate, per_image_csv, summarise
+from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
+from relocfw.pipeline import Relocalizer
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.report import format_table
+from relocfw.training import TrainingImages, TrainSettings, train_backbone
+
+BASELINES = ("mean_pose", "posenet")
+
+
+class Dataset(Protocol):
+    def frames(self, split: str) -> list[Frame]: ...
+
+
+def load_split(dataset: Dataset, split: str, quiet: bool) -> tuple[list[Frame], list[np.ndarray]]:
+    frames = dataset.frames(split)
+    if not frames:
+        raise DataError(f"the {split} split is empty")
+    return frames, read_images(frames, label=f"loading {split} images", quiet=quiet)
+
+
+def frames_fingerprint(frames: Sequence[Frame]) -> str:
+    """Changes when the training images' names or poses change, so stale models are not reused."""
+    rows = [
+        (f.name, np.round(f.pose.position, 6).tolist(), np.round(f.pose.quaternion, 6).tolist())
+        for f in frames
+    ]
+    return settings_key({"frames": rows})
+
+
+def train_or_reuse(
+    backbone: Backbone,
+    frames: Sequence[Frame],
+    images: Sequence[np.ndarray],
+    settings: TrainSettings,
+    identity: dict[str, Any],
+    cache_dir: Path,
+    device: torch.device,
+    quiet: bool,
+) -> Path:
+    """Train the backbone, or load the checkpoint of the same model trained before.
+
+    The checkpoint is named by a hash of the dataset and backbone settings, the
+    training settings and the training frames themselves.
+    """
+    key = settings_key(
+        {"identity": identity, "train": settings.__dict__, "frames": frames_fingerprint(frames)}
+    )
+    checkpoint = Path(cache_dir).expanduser() / "checkpoints" / f"{key}.pt"
+    if checkpoint.is_file() and not quiet:
+        print(f"checkpoint: {checkpoint}")
+    data = TrainingImages(images, [f.pose for f in frames], backbone.input_size)
+    train_backbone(backbone, data, settings, checkpoint, key, device, quiet)
+    return checkpoint
+
+
+def relocalize(
+    backbone: Backbone,
+    index: SimilarityIndex,
+    crop: CropSearch,
+    method: str,
+    train: tuple[Sequence[Frame], Sequence[np.ndarray]],
+    test: tuple[Sequence[Frame], Sequence[np.ndarray]],
+    run_dir: Path,
+    device: torch.device,
+    baselines: Sequence[str] = BASELINES,
+    query_batch_size: int = 64,
+    quiet: bool = False,
+) -> list[dict[str, Any]]:
+    """Fit the map, relocalize the test split, write results.csv and summary.json."""
+    relocalizer = Relocalizer(backbone, index, crop, device, query_batch_size)
+    relocalizer.fit(train[1], quiet=quiet)
+    results = []
+    if "mean_pose" in baselines:
+        results.append(constant_answer("mean training pose", mean_pose(train[0]), test[0]))
+    if "posenet" in baselines and not isinstance(crop, CentreCrop):
+        centre = Relocalizer(backbone, index, CentreCrop(), device, query_batch_size)
+        results.append(evaluate("posenet (centre crop)", centre, *test, quiet=quiet))
+    results.append(evaluate(method, relocalizer, *test, quiet=quiet))
+    summaries = [summarise(r) for r in results]
+    run_dir = Path(run_dir)
+    write_text_atomic(per_image_csv(results), run_dir / "results.csv")
+    write_text_atomic(json.dumps(summaries, indent=2) + "\n", run_dir / "summary.json")
+    table = format_table(summaries)
+    write_text_atomic(table + "\n", run_dir / "table.txt")
+    print(table)
+    print(f"\nresults: {run_dir / 'results.csv'}, {run_dir / 'summary.json'}")
+    return summaries

@@ -1,0 +1,39 @@
+"""The results table printed at the end of a run."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+COLUMNS = (
+    ("median_position_m", "med pos (m)", "{:.3f}"),
+    ("mean_position_m", "mean pos (m)", "{:.3f}"),
+    ("median_orientation_deg", "med ori (deg)", "{:.2f}"),
+    ("mean_orientation_deg", "mean ori (deg)", "{:.2f}"),
+    ("share_within_0.5m_15deg", "<0.5m & <15deg", "{:.1%}"),
+    ("mean_seconds_per_query", "ms/query", "{:.1f}"),
+    ("mean_network_passes", "passes/query", "{:.1f}"),
+)
+
+
+def format_table(summaries: Sequence[dict[str, Any]]) -> str:
+    """Plain-text table, one row per method; medians and means over all queries."""
+    header = ["method", *(title for _, title, _ in COLUMNS)]
+    rows = []
+    for summary in summaries:
+        cells = [str(summary["method"])]
+        for key, _, fmt in COLUMNS:
+            value = summary[key]
+            if key == "mean_seconds_per_query":
+                value *= 1000.0
+            cells.append(fmt.format(value))
+        rows.append(cells)
+    widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
+
+    def line(cells: list[str]) -> str:
+        first = cells[0].ljust(widths[0])
+        rest = (c.rjust(w) for c, w in zip(cells[1:], widths[1:], strict=True))
+        return "  ".join([first, *rest])
+
+    rule = "-" * len(line(header))
+    return "\n".join([line(header), rule, *(line(r) for r in rows)])

@@ -1,0 +1,56 @@
+"""z-score standardisation and nearest-neighbour distances shared by the indexes."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from relocfw.errors import DataError
+
+
+class ZScore:
+    """Per-dimension standardisation fitted on the map's descriptors.
+
+    Dimensions that never vary (dead ReLU units) keep a unit scale instead of
+    dividing by zero.
+    """
+
+    def fit(self, features: np.ndarray) -> ZScore:
+        features = check_features(features)
+        self.mean = features.mean(axis=0)
+        std = features.std(axis=0)
+        self.std = np.where(std > 1e-12, std, 1.0)
+        return self
+
+    def __call__(self, features: np.ndarray) -> np.ndarray:
+        return (np.asarray(features, dtype=np.float64) - self.mean) / self.std
+
+
+def check_features(features: np.ndarray, dim: int | None = None) -> np.ndarray:
+    """[N, D] finite float64 descriptors, or a DataError saying what is wrong."""
+    features = np.asarray(features, dtype=np.float64)
+    if features.ndim != 2 or len(features) == 0:
+        raise DataError(f"expected a non-empty [N, D] descriptor array, got shape {features.shape}")
+    if dim is not None and features.shape[1] != dim:
+        raise DataError(f"descriptors have {features.shape[1]} dimensions, the map has {dim}")
+    if not np.all(np.isfinite(features)):
+        raise DataError("descriptors contain NaN or infinity")
+    return features
+
+
+def nearest(queries: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Euclidean distance to, and index of, the nearest point for each query.
+
+    Uses |a|^2 + |b|^2 - 2ab (one matrix product) in chunks, so memory stays
+    bounded for large maps.
+    """
+    point_norms = np.einsum("ij,ij->i", points, points)
+    distances = np.empty(len(queries))
+    indices = np.empty(len(queries), dtype=np.int64)
+    chunk = max(1, 2**24 // max(1, len(points)))
+    for start in range(0, len(queries), chunk):
+        q = queries[start : start + chunk]
+        squared = np.einsum("ij,ij->i", q, q)[:, None] + point_norms[None, :] - 2 * q @ points.T
+        best = np.argmin(squared, axis=1)
+        indices[start : start + chunk] = best
+        distances[start : start + chunk] = np.sqrt(np.maximum(squared[np.arange(len(q)), best], 0))
+    return distances, indices

@@ -1,0 +1,214 @@
+"""Training a backbone on posed images, resumable and reusable through its checkpoint."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from relocfw.checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_atomic
+from relocfw.errors import ConfigError, DataError
+from relocfw.imaging import Strip, to_network_input
+from relocfw.interfaces import Backbone
+from relocfw.loss import posenet_loss
+from relocfw.progress import Progress
+from relocfw.values import Pose
+
+
+@dataclass(frozen=True)
+class TrainSettings:
+    """How to train; the paper's values are in conf/preset/paper.yaml.
+
+    Attributes:
+        iterations: optimiser steps.
+        batch_size: images per step.
+        optimizer: "sgd" (paper, with momentum) or "adam".
+        lr: learning rate.
+        lr_schedule: "constant" (paper) or "cosine" (decays to 1% by the end).
+        momentum: SGD momentum.
+        weight_decay: L2 penalty.
+        beta: weight of the quaternion error against position error in metres.
+        auxiliary_weights: loss weights of the two auxiliary heads.
+        random_crops: train on a random square crop of each image (paper), not the centre.
+        checkpoint_every: steps between resumable checkpoints.
+        seed: initialisation and batch order.
+    """
+
+    iterations: int = 30000
+    batch_size: int = 75
+    optimizer: str = "sgd"
+    lr: float = 1e-5
+    lr_schedule: str = "constant"
+    momentum: float = 0.9
+    weight_decay: float = 0.0
+    beta: float = 250.0
+    auxiliary_weights: tuple[float, float] = (0.3, 0.3)
+    random_crops: bool = True
+    checkpoint_every: int = 500
+    seed: int = 0
+
+    def validate(self) -> None:
+        for key in ("iterations", "batch_size", "checkpoint_every"):
+            if getattr(self, key) < 1:
+                raise ConfigError(f"train.{key} must be at least 1, got {getattr(self, key)}")
+        if self.optimizer not in ("sgd", "adam"):
+            raise ConfigError(f"train.optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
+        if self.lr_schedule not in ("constant", "cosine"):
+            raise ConfigError(
+                f"train.lr_schedule must be 'constant' or 'cosine', got {self.lr_schedule!r}"
+            )
+        if not self.lr > 0:
+            raise ConfigError(f"train.lr must be positive, got {self.lr}")
+        if self.beta < 0:
+            raise ConfigError(f"train.beta must be >= 0, got {self.beta}")
+
+
+class TrainingImages:
+    """Training strips in memory, cut into random square crops batch by batch.
+
+    Strips are scaled to the network input once, so a batch is a few tensor slices:
+    the data side costs microseconds against the network's milliseconds.
+    """
+
+    def __init__(self, images: Sequence[np.ndarray], poses: Sequence[Pose], input_size: int):
+        if len(images) == 0:
+            raise DataError("the training split is empty")
+        self.strips = [Strip(image, input_size) for image in images]
+        self.positions = torch.tensor(np.stack([p.position for p in poses]), dtype=torch.float32)
+        self.quaternions = torch.tensor(
+            np.stack([p.quaternion for p in poses]), dtype=torch.float32
+        )
+        self.input_size = input_size
+
+    def __len__(self) -> int:
+        return len(self.strips)
+
+    def batch(
+        self, indices: torch.Tensor, generator: torch.Generator, random_crops: bool
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        crops = []
+        for i in indices.tolist():
+            pixels = self.strips[i].pixels
+            span_y = pixels.shape[1] - self.input_size
+            span_x = pixels.shape[2] - self.input_size
+            if random_crops:
+                y = int(torch.randint(span_y + 1, (), generator=generator))
+                x = int(torch.randint(span_x + 1, (), generator=generator))
+            else:
+                y, x = span_y // 2, span_x // 2
+            crops.append(pixels[:, y : y + self.input_size, x : x + self.input_size])
+        return torch.stack(crops), self.positions[indices], self.quaternions[indices]
+
+
+def learning_rate(settings: TrainSettings, step: int) -> float:
+    if settings.lr_schedule == "constant":
+        return settings.lr
+    progress = step / max(1, settings.iterations)
+    return settings.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * progress)))
+
+
+def make_optimizer(backbone: Backbone, settings: TrainSettings) -> torch.optim.Optimizer:
+    if settings.optimizer == "adam":
+        return torch.optim.Adam(
+            backbone.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
+        )
+    return torch.optim.SGD(
+        backbone.parameters(),
+        lr=settings.lr,
+        momentum=settings.momentum,
+        weight_decay=settings.weight_decay,
+    )
+
+
+def train_backbone(
+    backbone: Backbone,
+    data: TrainingImages,
+    settings: TrainSettings,
+    checkpoint: Path | None = None,
+    key: str = "",
+    device: str | torch.device = "cpu",
+    quiet: bool = False,
+) -> list[float]:
+    """Train `backbone` in place; returns the loss of every step.
+
+    With a checkpoint path: a complete checkpoint with the same key is loaded instead
+    of training (the same model asked for again); an incomplete one is resumed; a new
+    one is written every `checkpoint_every` steps and at the end, atomically.
+    """
+    settings.validate()
+    device = torch.device(device)
+    torch.manual_seed(settings.seed)
+    generator = torch.Generator().manual_seed(settings.seed)
+    positions = data.positions.numpy()
+    backbone.set_position_normalisation(
+        positions.mean(axis=0), float(max(positions.std(axis=0).mean(), 1e-3))
+    )
+    backbone.to(device)
+    optimizer = make_optimizer(backbone, settings)
+    losses: list[float] = []
+    step = 0
+    if checkpoint is not None and Path(checkpoint).is_file():
+        state = load_checkpoint(checkpoint)
+        if state.get("key") != key:
+            raise DataError(f"{checkpoint} belongs to other settings (key {state.get('key')})")
+        backbone.load_state_dict(state["model"])
+        if state["complete"]:
+            return list(state["losses"])
+        optimizer.load_state_dict(state["optimizer"])
+        generator.set_state(state["generator"])
+        step, losses = state["iteration"], list(state["losses"])
+
+    def save(complete: bool) -> None:
+        if checkpoint is not None:
+            payload = {
+                "format": CHECKPOINT_FORMAT,
+                "key": key,
+                "complete": complete,
+                "iteration": step,
+                "model": backbone.state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "generator": generator.get_state(),
+                "losses": losses,
+                "settings": {k: v for k, v in asdict(settings).items()},
+            }
+            save_atomic(payload, checkpoint)
+
+    backbone.train()
+    progress = Progress(settings.iterations, "training", quiet=quiet)
+    progress.advance(step)
+    while step < settings.iterations:
+        indices = torch.randint(len(data), (settings.batch_size,), generator=generator)
+        images, true_positions, true_quaternions = data.batch(
+            indices, generator, settings.random_crops
+        )
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate(settings, step)
+        output = backbone(to_network_input(images.to(device)))
+        loss = posenet_loss(
+            output,
+            true_positions.to(device),
+            true_quaternions.to(device),
+            settings.beta,
+            settings.auxiliary_weights,
+        )
+        if not torch.isfinite(loss):
+            raise DataError(
+                f"training diverged at step {step} (loss {loss.item()}); lower train.lr"
+            )
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        step += 1
+        losses.append(loss.item())
+        recent = float(np.mean(losses[-20:]))
+        progress.advance(1, suffix=f"loss {recent:.3f}")
+        if step % settings.checkpoint_every == 0 and step < settings.iterations:
+            save(complete=False)
+    progress.close()
+    backbone.eval()
+    save(complete=True)
+    return losses

@@ -1,0 +1,63 @@
+"""The frozen values passed between pipeline stages."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class Crop:
+    """A square window of the original image, in pixels of the original image."""
+
+    x: int
+    y: int
+    size: int
+
+
+@dataclass(frozen=True)
+class Pose:
+    """Camera-to-world pose: position in metres, unit quaternion (w, x, y, z)."""
+
+    position: np.ndarray
+    quaternion: np.ndarray
+
+    def __post_init__(self) -> None:
+        # Copies as float64 so a caller's later edits cannot change a frozen pose.
+        position = np.array(self.position, dtype=np.float64).reshape(3)
+        quaternion = np.array(self.quaternion, dtype=np.float64).reshape(4)
+        position.setflags(write=False)
+        quaternion.setflags(write=False)
+        object.__setattr__(self, "position", position)
+        object.__setattr__(self, "quaternion", quaternion)
+
+
+@dataclass(frozen=True)
+class PoseOutput:
+    """What a backbone returns for a batch of network inputs.
+
+    Attributes:
+        positions: [B, 3] positions in metres (world frame).
+        quaternions: [B, 4] unit quaternions, w first.
+        features: [B, D] image descriptors used for similarity.
+        auxiliary: extra (positions, quaternions) pairs from auxiliary heads, used only
+            by the training loss; empty when the backbone has none.
+    """
+
+    positions: torch.Tensor
+    quaternions: torch.Tensor
+    features: torch.Tensor
+    auxiliary: tuple[tuple[torch.Tensor, torch.Tensor], ...] = field(default=())
+
+
+@dataclass(frozen=True)
+class Localization:
+    """The answer for one query image."""
+
+    pose: Pose
+    crop: Crop
+    distance: float  # descriptor distance of the chosen crop to the map
+    evaluations: int  # distinct crops that went through the network
+    seconds: float
