@@ -12,8 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from relocfw.errors import ConfigError
 from relocfw.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span
+from relocfw.options import integer_at_least, probability
 from relocfw.values import Crop
 
 
@@ -57,19 +57,11 @@ class GeneticCropSearch(CropSearch):
         iterations: int = 3,
         seed: int = 0,
     ) -> None:
-        if int(population) < 2:
-            raise ConfigError(f"population must be at least 2, got {population}")
-        if not 0 <= crossover <= 1:
-            raise ConfigError(f"crossover must be a probability in [0, 1], got {crossover}")
-        if not 0 <= mutation <= 1:
-            raise ConfigError(f"mutation must be a probability in [0, 1], got {mutation}")
-        if int(iterations) < 0:
-            raise ConfigError(f"iterations must be >= 0, got {iterations}")
-        self.population = int(population)
-        self.crossover = float(crossover)
-        self.mutation = float(mutation)
-        self.iterations = int(iterations)
-        self.seed = int(seed)
+        self.population = integer_at_least("population", population, 2)
+        self.crossover = probability("crossover", crossover)
+        self.mutation = probability("mutation", mutation)
+        self.iterations = integer_at_least("iterations", iterations, 0)
+        self.seed = integer_at_least("seed", seed, 0)
 
     def search(self, width: int, height: int, distance: CropDistance) -> Crop:
         _, span = crop_side_and_span(width, height)

@@ -7,6 +7,7 @@ from sklearn.cluster import KMeans
 
 from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import SimilarityIndex
+from relocfw.options import integer_at_least
 from relocfw.standardise import ZScore, check_features, nearest
 
 
@@ -20,13 +21,9 @@ class KMeansIndex(SimilarityIndex):
     """
 
     def __init__(self, k: int = 40, seed: int = 0, n_init: int = 4) -> None:
-        if int(k) < 1:
-            raise ConfigError(f"k must be at least 1, got {k}")
-        if int(n_init) < 1:
-            raise ConfigError(f"n_init must be at least 1, got {n_init}")
-        self.k = int(k)
-        self.seed = int(seed)
-        self.n_init = int(n_init)
+        self.k = integer_at_least("k", k, 1)
+        self.seed = integer_at_least("seed", seed, 0)
+        self.n_init = integer_at_least("n_init", n_init, 1)
 
     def fit(self, features: np.ndarray) -> None:
         features = check_features(features)

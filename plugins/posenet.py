@@ -11,11 +11,12 @@ from __future__ import annotations
 from pathlib import Path
 
 import torch
-from relocfw.plugins.googlenet import ConvBnRelu, GoogLeNetTrunk, scaled
 from torch import nn
 
 from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import Backbone
+from relocfw.options import integer_at_least, probability, real_number
+from relocfw.plugins.googlenet import ConvBnRelu, GoogLeNetTrunk, scaled
 from relocfw.values import PoseOutput
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -74,16 +75,13 @@ class PoseNet(Backbone):
         weights: str | None = None,
     ) -> None:
         super().__init__()
-        if input_size < 32:
-            raise ConfigError(f"input_size must be at least 32 pixels, got {input_size}")
-        if feature_dim < 1:
-            raise ConfigError(f"feature_dim must be positive, got {feature_dim}")
+        self.input_size = integer_at_least("input_size", input_size, 32)
+        self.feature_dim = integer_at_least("feature_dim", feature_dim, 1)
+        width = real_number("width", width)
         if not 0 < width <= 4:
             raise ConfigError(f"width must be in (0, 4], got {width}")
-        if not 0 <= dropout < 1:
+        if not 0 <= probability("dropout", dropout) < 1:
             raise ConfigError(f"dropout must be in [0, 1), got {dropout}")
-        self.input_size = int(input_size)
-        self.feature_dim = int(feature_dim)
         self.trunk = GoogLeNetTrunk(width)
         self.aux1 = AuxiliaryHead(self.trunk.aux_channels[0], width)
         self.aux2 = AuxiliaryHead(self.trunk.aux_channels[1], width)

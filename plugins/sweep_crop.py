@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from relocfw.errors import ConfigError
 from relocfw.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span
+from relocfw.options import integer_at_least
 from relocfw.values import Crop
 
 
@@ -18,9 +18,7 @@ class SweepCrop(CropSearch):
     """
 
     def __init__(self, stride: int = 1) -> None:
-        if int(stride) < 1:
-            raise ConfigError(f"stride must be at least 1, got {stride}")
-        self.stride = int(stride)
+        self.stride = integer_at_least("stride", stride, 1)
 
     def search(self, width: int, height: int, distance: CropDistance) -> Crop:
         _, span = crop_side_and_span(width, height)

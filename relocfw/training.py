@@ -15,6 +15,7 @@ from relocfw.errors import ConfigError, DataError
 from relocfw.imaging import Strip, to_network_input
 from relocfw.interfaces import Backbone
 from relocfw.loss import posenet_loss
+from relocfw.options import integer_at_least, real_number
 from relocfw.progress import Progress
 from relocfw.values import Pose
 
@@ -53,8 +54,13 @@ class TrainSettings:
 
     def validate(self) -> None:
         for key in ("iterations", "batch_size", "checkpoint_every"):
-            if getattr(self, key) < 1:
-                raise ConfigError(f"train.{key} must be at least 1, got {getattr(self, key)}")
+            integer_at_least(f"train.{key}", getattr(self, key), 1)
+        for key in ("lr", "momentum", "weight_decay", "beta"):
+            real_number(f"train.{key}", getattr(self, key))
+        if len(self.auxiliary_weights) != 2:
+            raise ConfigError("train.auxiliary_weights must hold two numbers (aux1, aux2)")
+        for weight in self.auxiliary_weights:
+            real_number("train.auxiliary_weights", weight)
         if self.optimizer not in ("sgd", "adam"):
             raise ConfigError(f"train.optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
         if self.lr_schedule not in ("constant", "cosine"):
@@ -160,6 +166,7 @@ def train_backbone(
             return list(state["losses"])
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"])
+        torch.set_rng_state(state["torch_rng"])  # dropout masks continue as they would have
         step, losses = state["iteration"], list(state["losses"])
 
     def save(complete: bool) -> None:
@@ -172,6 +179,7 @@ def train_backbone(
                 "model": backbone.state_dict(),
                 "optimizer": optimizer.state_dict(),
                 "generator": generator.get_state(),
+                "torch_rng": torch.get_rng_state(),
                 "losses": losses,
                 "settings": {k: v for k, v in asdict(settings).items()},
             }

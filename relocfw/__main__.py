@@ -1,0 +1,5 @@
+"""`python -m relocfw` runs the CLI, like the `relocfw` command."""
+
+from relocfw.cli import main
+
+main()

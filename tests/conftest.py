@@ -1,0 +1,49 @@
+"""Shared fixtures: tiny scenes and networks, so each test file runs in seconds."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SAMPLE_ROOT = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-stairs-sample"
+
+# Overrides that shrink the CLI job to a few seconds: a 48x36 scene, 32-pixel input,
+# a GoogLeNet at 1/8 width, three training steps.
+TINY_MODEL = [
+    "backbone.input_size=32",
+    "backbone.width=0.125",
+    "backbone.feature_dim=64",
+    "train.iterations=3",
+    "train.batch_size=4",
+    "k=4",
+    "quiet=true",
+    "hydra.job_logging.root.level=WARNING",
+]
+TINY_SCENE = [
+    "dataset.width=48",
+    "dataset.height=36",
+    "dataset.train_laps=2",
+    "dataset.train_frames_per_lap=8",
+    "dataset.test_frames=4",
+]
+TINY_OVERRIDES = TINY_MODEL + TINY_SCENE
+
+
+@pytest.fixture
+def stairs_sample() -> Path:
+    """The real 7-Scenes Stairs frames in ../shared (never copied into the repo)."""
+    if not (SAMPLE_ROOT / "stairs" / "TrainSplit.txt").is_file():
+        pytest.skip(f"7-Scenes sample not found at {SAMPLE_ROOT}")
+    return SAMPLE_ROOT
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A rendered 48x36 synthetic scene in the 7-Scenes layout."""
+    from relocfw.data.synthetic import SyntheticSceneSpec, ensure_synthetic_scene
+
+    spec = SyntheticSceneSpec(
+        width=48, height=36, train_laps=2, train_frames_per_lap=8, test_frames=4
+    )
+    return ensure_synthetic_scene(spec, tmp_path_factory.mktemp("cache"), quiet=True)

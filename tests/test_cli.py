@@ -1,0 +1,120 @@
+"""The `relocfw` command end to end, on a tiny configuration, in a subprocess."""
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import TINY_MODEL, TINY_OVERRIDES
+
+
+def relocfw(args, tmp_path, cache=None):
+    env = {**os.environ, "RELOCFW_CACHE": str(cache or tmp_path / "cache")}
+    return subprocess.run(
+        [sys.executable, "-m", "relocfw", *args],
+        cwd=tmp_path,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    return tmp_path_factory.mktemp("cli-cache")
+
+
+def test_main_job_writes_results_and_reuses_the_model(tmp_path, cache):
+    run_dir = tmp_path / "run"
+    result = relocfw([*TINY_OVERRIDES, f"hydra.run.dir={run_dir}"], tmp_path, cache)
+    assert result.returncode == 0, result.stderr
+    for row in ("mean training pose", "posenet (centre crop)", "ga + kmeans (k=4)"):
+        assert row in result.stdout
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert [s["method"] for s in summary][-1] == "ga + kmeans (k=4)"
+    assert all(s["queries"] == 4 for s in summary)
+    with open(run_dir / "results.csv") as stream:
+        rows = list(csv.DictReader(stream))
+    assert len(rows) == 3 * 4
+    assert {r["frame"] for r in rows} == {f"seq-03/frame-00000{i}" for i in range(4)}
+    checkpoints = list((cache / "checkpoints").glob("*.pt"))
+    assert len(checkpoints) == 1
+    stamp = checkpoints[0].stat().st_mtime_ns
+
+    # A second method on the same model: the checkpoint is reused, not retrained.
+    again = relocfw(
+        [*TINY_OVERRIDES, "crop=sweep", "index=exhaustive", f"hydra.run.dir={tmp_path / 'r2'}"],
+        tmp_path,
+        cache,
+    )
+    assert again.returncode == 0, again.stderr
+    assert "sweep + exhaustive" in again.stdout
+    assert checkpoints[0].stat().st_mtime_ns == stamp
+    assert len(list((cache / "checkpoints").glob("*.pt"))) == 1
+
+
+def test_train_task_and_multirun(tmp_path, cache):
+    trained = relocfw([*TINY_OVERRIDES, "task=train"], tmp_path, cache)
+    assert trained.returncode == 0, trained.stderr
+    assert "model:" in trained.stdout and "mean training pose" not in trained.stdout
+    multi = relocfw(
+        ["-m", "crop=centre,sweep", *TINY_OVERRIDES, f"hydra.sweep.dir={tmp_path / 'multi'}"],
+        tmp_path,
+        cache,
+    )
+    assert multi.returncode == 0, multi.stderr
+    assert (tmp_path / "multi" / "0" / "summary.json").is_file()
+    assert (tmp_path / "multi" / "1" / "summary.json").is_file()
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["crop=nosuch"], "Could not find 'crop/nosuch'"),
+        (["k=0"], "k must be at least 1, got 0"),
+        (["k=500"], "k=500 is more clusters than training descriptors"),
+        (["crop.population=1"], "population must be at least 2"),
+        (["dataset=sevenscenes", "dataset.root=/no/such/dir"], "/no/such/dir"),
+        (["train.optimizer=rmsprop"], "train.optimizer"),
+        (["task=nosuch"], "task must be one of"),
+        (["device=cuda:7"], "device"),
+    ],
+)
+def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):
+    tiny = TINY_MODEL if "dataset=sevenscenes" in args else TINY_OVERRIDES
+    result = relocfw([*tiny, *args], tmp_path, cache)
+    assert result.returncode != 0
+    assert message in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_corrupt_image_names_the_file(tmp_path, cache, tiny_scene):
+    root = tmp_path / "data"
+    shutil.copytree(tiny_scene, root / "room")
+    bad = root / "room" / "seq-01" / "frame-000004.color.png"
+    bad.write_bytes(b"\x89PNG truncated")
+    result = relocfw(
+        [*TINY_MODEL, "dataset=sevenscenes", f"dataset.root={root}", "dataset.scene=room"],
+        tmp_path,
+        cache,
+    )
+    assert result.returncode == 2
+    assert f"cannot decode image (corrupt or not an image): {bad}" in result.stderr
+
+
+def test_help_lists_the_options(tmp_path):
+    result = relocfw(["--help"], tmp_path)
+    assert result.returncode == 0
+    for option in ("crop: centre, ga, sweep", "index: exhaustive, kmeans"):
+        assert option in result.stdout
+
+
+def test_console_script_is_installed():
+    script = Path(sys.executable).with_name("relocfw")
+    assert script.is_file(), "pip install -e . should install the relocfw command"

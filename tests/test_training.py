@@ -1,0 +1,117 @@
+import numpy as np
+import pytest
+import torch
+
+import relocfw.training as training
+from relocfw.checkpoints import load_checkpoint
+from relocfw.data.frames import read_images
+from relocfw.data.sevenscenes import load_sevenscenes
+from relocfw.errors import ConfigError
+from relocfw.loss import head_loss, posenet_loss
+from relocfw.plugins.posenet import PoseNet
+from relocfw.training import TrainingImages, TrainSettings, train_backbone
+from relocfw.values import PoseOutput
+
+
+def test_head_loss_is_position_error_plus_beta_quaternion_error():
+    positions = torch.tensor([[3.0, 4.0, 0.0]])
+    quaternions = torch.tensor([[2.0, 0.0, 0.0, 0.0]])  # normalised to (1, 0, 0, 0)
+    true_q = torch.tensor([[0.0, 1.0, 0.0, 0.0]])
+    loss = head_loss(positions, quaternions, torch.zeros(1, 3), true_q, beta=10.0)
+    assert loss.item() == pytest.approx(5.0 + 10.0 * np.sqrt(2.0))
+
+
+def test_auxiliary_heads_are_weighted():
+    zero_p, unit_q = torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]])
+    off_p = torch.tensor([[1.0, 0, 0]])
+    output = PoseOutput(zero_p, unit_q, torch.zeros(1, 2), ((off_p, unit_q), (2 * off_p, unit_q)))
+    loss = posenet_loss(output, zero_p, unit_q, beta=1.0, auxiliary_weights=(0.3, 0.3))
+    assert loss.item() == pytest.approx(0.3 * 1 + 0.3 * 2)
+
+
+@pytest.fixture
+def data(tiny_scene):
+    frames = load_sevenscenes(tiny_scene, None, "train")
+    return TrainingImages(read_images(frames, quiet=True), [f.pose for f in frames], 32)
+
+
+def tiny_model():
+    torch.manual_seed(0)
+    return PoseNet(input_size=32, width=0.125, feature_dim=32)
+
+
+SETTINGS = TrainSettings(
+    iterations=6, batch_size=4, optimizer="adam", lr=1e-3, beta=5.0, checkpoint_every=2
+)
+
+
+def test_training_lowers_the_loss_on_a_fixed_batch(data):
+    settings = TrainSettings(
+        iterations=30, batch_size=16, optimizer="adam", lr=3e-3, beta=5.0, random_crops=False
+    )
+    losses = train_backbone(tiny_model(), data, settings, quiet=True)
+    assert np.mean(losses[-5:]) < 0.7 * np.mean(losses[:5])
+
+
+def test_batches_are_random_crops_with_their_labels(data):
+    generator = torch.Generator().manual_seed(0)
+    images, positions, quaternions = data.batch(torch.tensor([0, 5]), generator, True)
+    assert images.shape == (2, 3, 32, 32) and images.dtype == torch.uint8
+    assert torch.equal(positions[1], data.positions[5])
+    assert torch.allclose(quaternions.norm(dim=1), torch.ones(2))
+
+
+def test_complete_checkpoint_is_reused(data, tmp_path):
+    checkpoint = tmp_path / "model.pt"
+    first = tiny_model()
+    losses = train_backbone(first, data, SETTINGS, checkpoint, key="k1", quiet=True)
+    assert load_checkpoint(checkpoint)["complete"]
+    second = tiny_model()
+    calls = []
+    original = training.posenet_loss
+    training.posenet_loss = lambda *a, **k: calls.append(1) or original(*a, **k)
+    try:
+        again = train_backbone(second, data, SETTINGS, checkpoint, key="k1", quiet=True)
+    finally:
+        training.posenet_loss = original
+    assert calls == [] and again == losses
+    for a, b in zip(first.state_dict().values(), second.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_interrupted_training_resumes_to_the_same_model(data, tmp_path, monkeypatch):
+    uninterrupted = tiny_model()
+    expected = train_backbone(uninterrupted, data, SETTINGS, quiet=True)
+
+    checkpoint = tmp_path / "model.pt"
+    calls = []
+    original = training.posenet_loss
+
+    def killed_at_step_5(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 5:
+            raise KeyboardInterrupt
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(training, "posenet_loss", killed_at_step_5)
+    with pytest.raises(KeyboardInterrupt):
+        train_backbone(tiny_model(), data, SETTINGS, checkpoint, key="k", quiet=True)
+    state = load_checkpoint(checkpoint)
+    assert not state["complete"] and state["iteration"] == 4
+    monkeypatch.setattr(training, "posenet_loss", original)
+    resumed = tiny_model()
+    losses = train_backbone(resumed, data, SETTINGS, checkpoint, key="k", quiet=True)
+    assert np.allclose(losses, expected, rtol=1e-4)
+    for a, b in zip(
+        uninterrupted.state_dict().values(), resumed.state_dict().values(), strict=True
+    ):
+        assert torch.allclose(a.float(), b.float(), atol=1e-5)
+
+
+def test_settings_are_validated():
+    with pytest.raises(ConfigError, match="train.iterations"):
+        TrainSettings(iterations=0).validate()
+    with pytest.raises(ConfigError, match="train.optimizer"):
+        TrainSettings(optimizer="rmsprop").validate()
+    with pytest.raises(ConfigError, match="train.lr"):
+        TrainSettings(lr="fast").validate()
