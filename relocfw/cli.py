@@ -74,6 +74,8 @@ def run(cfg: DictConfig) -> None:
         raise ConfigError(f"query_batch_size must be at least 1, got {cfg.query_batch_size}")
     device = pick_device(cfg.device)
     settings = train_settings(cfg)
+    # Seeded here, in the CLI, so the same command initialises the same network.
+    torch.manual_seed(int(cfg.seed))
     backbone = build(cfg, "backbone")
     # Build every plugin before any slow work, so a bad option fails in a second.
     index = build(cfg, "index") if cfg.task == "relocalize" else None
