@@ -25,13 +25,16 @@ class KMeansIndex(SimilarityIndex):
         self.seed = integer_at_least("seed", seed, 0)
         self.n_init = integer_at_least("n_init", n_init, 1)
 
+    def check_map_size(self, count: int) -> None:
+        if self.k > count:
+            raise ConfigError(
+                f"k={self.k} is more clusters than training descriptors ({count}); "
+                f"choose k <= {count}"
+            )
+
     def fit(self, features: np.ndarray) -> None:
         features = check_features(features)
-        if self.k > len(features):
-            raise ConfigError(
-                f"k={self.k} is more clusters than training descriptors ({len(features)}); "
-                f"choose k <= {len(features)}"
-            )
+        self.check_map_size(len(features))
         self.zscore = ZScore().fit(features)
         kmeans = KMeans(n_clusters=self.k, n_init=self.n_init, random_state=self.seed)
         kmeans.fit(self.zscore(features))

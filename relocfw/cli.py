@@ -91,10 +91,12 @@ def run(cfg: DictConfig) -> None:
     }
     quiet = bool(cfg.quiet)
     train = jobs.load_split(dataset, "train", quiet)
-    checkpoint = jobs.train_or_reuse(
+    if index is not None:
+        index.check_map_size(len(train[0]))
+    checkpoint, reused = jobs.train_or_reuse(
         backbone, *train, settings, identity, Path(cfg.cache_dir), device, quiet
     )
-    print(f"model: {checkpoint}")
+    print(f"model: {checkpoint} ({'reused' if reused else 'trained'})")
     if cfg.task == "train":
         return
     test = jobs.load_split(dataset, "test", quiet)

@@ -59,6 +59,13 @@ class SimilarityIndex(ABC):
     def distance(self, features: np.ndarray) -> np.ndarray:
         """[n] distance of each of [n, D] descriptors to the map; lower = more similar."""
 
+    def check_map_size(self, count: int) -> None:  # noqa: B027 - optional hook, no-op default
+        """Raise ConfigError if a map of `count` descriptors cannot be built.
+
+        Called before training, so an impossible option (k-means with more clusters
+        than images) fails in a second rather than after the model is trained.
+        """
+
 
 class CropSearch(ABC):
     """Chooses the square crop of a width x height image whose descriptor is closest.

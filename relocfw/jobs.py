@@ -52,21 +52,22 @@ def train_or_reuse(
     cache_dir: Path,
     device: torch.device,
     quiet: bool,
-) -> Path:
+) -> tuple[Path, bool]:
     """Train the backbone, or load the checkpoint of the same model trained before.
 
     The checkpoint is named by a hash of the dataset and backbone settings, the
     training settings and the training frames themselves.
+
+    Returns:
+        The checkpoint path, and whether a finished model was reused.
     """
     key = settings_key(
         {"identity": identity, "train": settings.__dict__, "frames": frames_fingerprint(frames)}
     )
     checkpoint = Path(cache_dir).expanduser() / "checkpoints" / f"{key}.pt"
-    if checkpoint.is_file() and not quiet:
-        print(f"checkpoint: {checkpoint}")
     data = TrainingImages(images, [f.pose for f in frames], backbone.input_size)
-    train_backbone(backbone, data, settings, checkpoint, key, device, quiet)
-    return checkpoint
+    run = train_backbone(backbone, data, settings, checkpoint, key, device, quiet)
+    return checkpoint, run.reused
 
 
 def relocalize(

@@ -73,6 +73,14 @@ class TrainSettings:
             raise ConfigError(f"train.beta must be >= 0, got {self.beta}")
 
 
+@dataclass(frozen=True)
+class TrainingRun:
+    """What `train_backbone` did: every step's loss, and whether it only loaded a model."""
+
+    losses: list[float]
+    reused: bool
+
+
 class TrainingImages:
     """Training strips in memory, cut into random square crops batch by batch.
 
@@ -138,7 +146,7 @@ def train_backbone(
     key: str = "",
     device: str | torch.device = "cpu",
     quiet: bool = False,
-) -> list[float]:
+) -> TrainingRun:
     """Train `backbone` in place; returns the loss of every step.
 
     With a checkpoint path: a complete checkpoint with the same key is loaded instead
@@ -163,7 +171,7 @@ def train_backbone(
             raise DataError(f"{checkpoint} belongs to other settings (key {state.get('key')})")
         backbone.load_state_dict(state["model"])
         if state["complete"]:
-            return list(state["losses"])
+            return TrainingRun(list(state["losses"]), reused=True)
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])  # dropout masks continue as they would have
@@ -219,4 +227,4 @@ def train_backbone(
     progress.close()
     backbone.eval()
     save(complete=True)
-    return losses
+    return TrainingRun(losses, reused=False)

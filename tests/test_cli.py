@@ -55,6 +55,7 @@ def test_main_job_writes_results_and_reuses_the_model(tmp_path, cache):
     )
     assert again.returncode == 0, again.stderr
     assert "sweep + exhaustive" in again.stdout
+    assert "(reused)" in again.stdout and "(trained)" in result.stdout
     assert checkpoints[0].stat().st_mtime_ns == stamp
     assert len(list((cache / "checkpoints").glob("*.pt"))) == 1
 
@@ -92,6 +93,7 @@ def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):
     assert result.returncode != 0
     assert message in result.stderr
     assert "Traceback" not in result.stderr
+    assert "model:" not in result.stdout  # refused before any training
 
 
 def test_corrupt_image_names_the_file(tmp_path, cache, tiny_scene):

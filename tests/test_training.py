@@ -49,7 +49,7 @@ def test_training_lowers_the_loss_on_a_fixed_batch(data):
     settings = TrainSettings(
         iterations=30, batch_size=16, optimizer="adam", lr=3e-3, beta=5.0, random_crops=False
     )
-    losses = train_backbone(tiny_model(), data, settings, quiet=True)
+    losses = train_backbone(tiny_model(), data, settings, quiet=True).losses
     assert np.mean(losses[-5:]) < 0.7 * np.mean(losses[:5])
 
 
@@ -64,7 +64,7 @@ def test_batches_are_random_crops_with_their_labels(data):
 def test_complete_checkpoint_is_reused(data, tmp_path):
     checkpoint = tmp_path / "model.pt"
     first = tiny_model()
-    losses = train_backbone(first, data, SETTINGS, checkpoint, key="k1", quiet=True)
+    first_run = train_backbone(first, data, SETTINGS, checkpoint, key="k1", quiet=True)
     assert load_checkpoint(checkpoint)["complete"]
     second = tiny_model()
     calls = []
@@ -74,14 +74,15 @@ def test_complete_checkpoint_is_reused(data, tmp_path):
         again = train_backbone(second, data, SETTINGS, checkpoint, key="k1", quiet=True)
     finally:
         training.posenet_loss = original
-    assert calls == [] and again == losses
+    assert calls == [] and again.reused and not first_run.reused
+    assert again.losses == first_run.losses
     for a, b in zip(first.state_dict().values(), second.state_dict().values(), strict=True):
         assert torch.equal(a, b)
 
 
 def test_interrupted_training_resumes_to_the_same_model(data, tmp_path, monkeypatch):
     uninterrupted = tiny_model()
-    expected = train_backbone(uninterrupted, data, SETTINGS, quiet=True)
+    expected = train_backbone(uninterrupted, data, SETTINGS, quiet=True).losses
 
     checkpoint = tmp_path / "model.pt"
     calls = []
@@ -100,7 +101,9 @@ def test_interrupted_training_resumes_to_the_same_model(data, tmp_path, monkeypa
     assert not state["complete"] and state["iteration"] == 4
     monkeypatch.setattr(training, "posenet_loss", original)
     resumed = tiny_model()
-    losses = train_backbone(resumed, data, SETTINGS, checkpoint, key="k", quiet=True)
+    run = train_backbone(resumed, data, SETTINGS, checkpoint, key="k", quiet=True)
+    assert not run.reused
+    losses = run.losses
     assert np.allclose(losses, expected, rtol=1e-4)
     for a, b in zip(
         uninterrupted.state_dict().values(), resumed.state_dict().values(), strict=True
