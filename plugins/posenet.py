@@ -13,6 +13,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from relocfw.checkpoints import read_torch_file
 from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import Backbone
 from relocfw.options import integer_at_least, probability, real_number
@@ -123,12 +124,7 @@ def load_imagenet_weights(model: PoseNet, path: Path) -> None:
     Every trunk parameter must be provided with the right shape; anything missing is a
     wrong file, not something to start from random silently.
     """
-    if not path.is_file():
-        raise DataError(f"backbone.weights: file not found: {path}")
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises many types for a bad file
-        raise DataError(f"backbone.weights: cannot read {path}: {error}") from error
+    state = read_torch_file(path, "backbone.weights")
     if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
         state = state["state_dict"]
     if not isinstance(state, dict):

@@ -41,15 +41,25 @@ def save_atomic(payload: dict[str, Any], path: Path) -> None:
         raise
 
 
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    """A checkpoint written by `save_atomic`, or a DataError naming the file."""
+def read_torch_file(path: Path, what: str) -> Any:
+    """Tensors saved with torch.save, loaded safely (no pickled code) onto the CPU.
+
+    Args:
+        path: the file.
+        what: how to name it in an error, e.g. "checkpoint" or "backbone.weights".
+    """
     path = Path(path)
     if not path.is_file():
-        raise DataError(f"checkpoint not found: {path}")
+        raise DataError(f"{what}: file not found: {path}")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises many types for a damaged file
-        raise DataError(f"cannot read checkpoint {path}: {error}") from error
+        raise DataError(f"{what}: cannot read {path}: {error}") from error
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """A checkpoint written by `save_atomic`, or a DataError naming the file."""
+    payload = read_torch_file(path, "checkpoint")
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise DataError(f"{path} is not a relocfw checkpoint (format {CHECKPOINT_FORMAT})")
     return payload
