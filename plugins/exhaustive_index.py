@@ -6,7 +6,7 @@ import numpy as np
 
 from relocfw.errors import DataError
 from relocfw.interfaces import SimilarityIndex
-from relocfw.standardise import ZScore, check_features, nearest
+from relocfw.standardise import ZScore, check_features, k_nearest
 
 
 class ExhaustiveIndex(SimilarityIndex):
@@ -17,12 +17,20 @@ class ExhaustiveIndex(SimilarityIndex):
         self.zscore = ZScore().fit(features)
         self.points = self.zscore(features)
 
-    def nearest(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Distance to and index of the nearest training descriptor."""
+    def neighbours(self, features: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """[n, k] distances to and indices of the nearest training descriptors.
+
+        What the retrieval baseline answers with: the poses of those training images.
+        """
         if not hasattr(self, "points"):
             raise DataError("the index is not fitted yet: call fit() first")
         features = check_features(features, self.points.shape[1])
-        return nearest(self.zscore(features), self.points)
+        return k_nearest(self.zscore(features), self.points, k)
+
+    def nearest(self, features: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance to and index of the nearest training descriptor."""
+        distances, indices = self.neighbours(features, 1)
+        return distances[:, 0], indices[:, 0]
 
     def distance(self, features: np.ndarray) -> np.ndarray:
         return self.nearest(features)[0]

@@ -8,6 +8,7 @@ learning; nothing is downloaded at run time.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import torch
@@ -18,27 +19,13 @@ from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import Backbone
 from relocfw.options import integer_at_least, probability, real_number
 from relocfw.plugins.googlenet import ConvBnRelu, GoogLeNetTrunk, scaled
+from relocfw.pose_head import PoseHead, PoseRegressor
 from relocfw.values import PoseOutput
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 # torchvision modules with no counterpart here: the ImageNet classifiers.
 DROPPED_PREFIXES = ("fc.", "aux1.fc2.", "aux2.fc2.")
-
-
-class PoseRegressor(nn.Module):
-    """Position (3) and orientation (unit quaternion, 4) from a feature vector."""
-
-    def __init__(self, in_features: int) -> None:
-        super().__init__()
-        self.position = nn.Linear(in_features, 3)
-        self.orientation = nn.Linear(in_features, 4)
-        # Start at the identity rotation so early training sees sensible quaternions.
-        with torch.no_grad():
-            self.orientation.bias.copy_(torch.tensor([1.0, 0.0, 0.0, 0.0]))
-
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        return self.position(x), nn.functional.normalize(self.orientation(x), dim=1)
 
 
 class AuxiliaryHead(nn.Module):
@@ -65,7 +52,12 @@ class PoseNet(Backbone):
         width: channel multiplier; 1.0 is GoogLeNet, smaller only for quick tests.
         dropout: dropout before the main pose regressor (paper: 0.5).
         weights: optional torchvision GoogLeNet ImageNet state_dict file.
+        mc_samples: Monte Carlo dropout samples at test time (Bayesian PoseNet,
+            Kendall & Cipolla 2016); 0 turns sampling off. A test-time option: it does
+            not change the trained model, so it is not part of the checkpoint's key.
     """
+
+    test_time_options = ("mc_samples",)
 
     def __init__(
         self,
@@ -74,6 +66,7 @@ class PoseNet(Backbone):
         width: float = 1.0,
         dropout: float = 0.5,
         weights: str | None = None,
+        mc_samples: int = 0,
     ) -> None:
         super().__init__()
         self.input_size = integer_at_least("input_size", input_size, 32)
@@ -86,9 +79,8 @@ class PoseNet(Backbone):
         self.trunk = GoogLeNetTrunk(width)
         self.aux1 = AuxiliaryHead(self.trunk.aux_channels[0], width)
         self.aux2 = AuxiliaryHead(self.trunk.aux_channels[1], width)
-        self.descriptor = nn.Linear(self.trunk.out_channels, self.feature_dim)
-        self.dropout = nn.Dropout(dropout)
-        self.pose = PoseRegressor(self.feature_dim)
+        self.head = PoseHead(self.trunk.out_channels, self.feature_dim, dropout)
+        self.mc_samples = integer_at_least("mc_samples", mc_samples, 0)
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
         if weights:
@@ -99,14 +91,13 @@ class PoseNet(Backbone):
     def forward(self, images: torch.Tensor) -> PoseOutput:
         at_4a, at_4d, at_5b = self.trunk((images - self.mean) / self.std)
         pooled = torch.flatten(nn.functional.adaptive_avg_pool2d(at_5b, 1), 1)
-        features = torch.relu(self.descriptor(pooled))
-        position, quaternion = self.pose(self.dropout(features))
-        auxiliary: tuple = ()
-        if self.training:
-            auxiliary = tuple(
-                (self.to_world_positions(p), q) for p, q in (self.aux1(at_4a), self.aux2(at_4d))
-            )
-        return PoseOutput(self.to_world_positions(position), quaternion, features, auxiliary)
+        output = self.head(pooled, self.to_world_positions, self.mc_samples)
+        if not self.training:
+            return output
+        auxiliary = tuple(
+            (self.to_world_positions(p), q) for p, q in (self.aux1(at_4a), self.aux2(at_4d))
+        )
+        return dataclasses.replace(output, auxiliary=auxiliary)
 
 
 def torchvision_to_posenet_key(key: str) -> str | None:

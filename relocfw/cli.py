@@ -46,7 +46,9 @@ def build(cfg: DictConfig, group: str, **extra: Any) -> Any:
 def train_settings(cfg: DictConfig) -> TrainSettings:
     values = OmegaConf.to_container(cfg.train, resolve=True)
     try:
-        values["auxiliary_weights"] = tuple(values["auxiliary_weights"])
+        for key in ("auxiliary_weights", "learned_init"):
+            if key in values:
+                values[key] = tuple(values[key])
         settings = TrainSettings(**values)
     except TypeError as error:
         raise ConfigError(f"train: {error}") from error

@@ -106,6 +106,8 @@ CSV_COLUMNS = (
     "distance",
     "network_passes",
     "seconds",
+    "position_spread_m",
+    "orientation_spread_deg",
 )
 
 
@@ -130,5 +132,6 @@ def per_image_csv(results: Sequence[MethodResult]) -> str:
                 + [f"{pos_err:.6f}", f"{ori_err:.4f}"]
                 + [answer.crop.x, answer.crop.y, answer.crop.size]
                 + [f"{answer.distance:.6f}", answer.evaluations, f"{answer.seconds:.6f}"]
+                + [f"{answer.position_spread:.6f}", f"{answer.orientation_spread_deg:.4f}"]
             )
     return stream.getvalue()

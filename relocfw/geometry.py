@@ -101,14 +101,15 @@ def orientation_error_deg(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray
     return np.degrees(2.0 * np.arccos(dot))
 
 
-def mean_quaternion(quaternions: np.ndarray) -> np.ndarray:
-    """Average rotation of [N, 4] quaternions, indifferent to their signs.
+def mean_quaternion(quaternions: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """(Weighted) average rotation of [N, 4] quaternions, indifferent to their signs.
 
-    The principal eigenvector of sum(q q^T) (Markley et al. 2007) is the rotation
+    The principal eigenvector of sum(w q q^T) (Markley et al. 2007) is the rotation
     closest to all inputs in the chordal sense; q and -q contribute the same term.
     """
     q = np.asarray(quaternions, dtype=np.float64)
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    _, vectors = np.linalg.eigh(q.T @ q)
+    w = np.ones(len(q)) if weights is None else np.asarray(weights, dtype=np.float64)
+    _, vectors = np.linalg.eigh((q * w[:, None]).T @ q)
     mean = vectors[:, -1]
     return mean if mean[0] >= 0 else -mean

@@ -28,6 +28,9 @@ class Backbone(torch.nn.Module, ABC):
 
     input_size: int
     feature_dim: int
+    # Constructor options that only change inference (e.g. Monte Carlo samples): they
+    # are left out of the checkpoint key, so such variants share one trained model.
+    test_time_options: tuple[str, ...] = ()
 
     def __init__(self) -> None:
         super().__init__()

@@ -85,7 +85,7 @@ def relocalize(
 ) -> list[dict[str, Any]]:
     """Fit the map, relocalize the test split, write results.csv and summary.json."""
     relocalizer = Relocalizer(backbone, index, crop, device, query_batch_size)
-    relocalizer.fit(train[1], quiet=quiet)
+    relocalizer.fit(train[1], [f.pose for f in train[0]], quiet=quiet)
     results = []
     if "mean_pose" in baselines:
         results.append(constant_answer("mean training pose", mean_pose(train[0]), test[0]))

@@ -4,14 +4,33 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
+from relocfw.errors import ConfigError, DataError
+from relocfw.geometry import mean_quaternion
 from relocfw.imaging import Strip, to_network_input
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.progress import Progress
 from relocfw.values import Crop, Localization, Pose
+
+
+class NetworkAnswers(NamedTuple):
+    """The backbone's outputs for a batch of windows, as float64 numpy arrays."""
+
+    positions: np.ndarray  # [n, 3]
+    quaternions: np.ndarray  # [n, 4]
+    features: np.ndarray  # [n, D]
+    position_spread: np.ndarray  # [n], NaN unless the backbone samples
+    orientation_spread_deg: np.ndarray  # [n]
+
+
+def as_numpy(tensor: torch.Tensor | None, count: int) -> np.ndarray:
+    if tensor is None:
+        return np.full(count, np.nan)
+    return tensor.double().cpu().numpy()
 
 
 class Relocalizer:
@@ -26,6 +45,10 @@ class Relocalizer:
         crop: the crop search strategy.
         device: where the network runs.
         batch_size: most crops per forward pass.
+        retrieval_k: 0 answers with the network's pose (PoseNet and the paper). k > 0
+            answers with the distance-weighted mean pose of the k training images
+            nearest to the chosen crop's descriptor: the image-retrieval baseline.
+            Needs an index with `neighbours` (index=exhaustive) and training poses.
     """
 
     def __init__(
@@ -35,24 +58,39 @@ class Relocalizer:
         crop: CropSearch,
         device: str | torch.device = "cpu",
         batch_size: int = 64,
+        retrieval_k: int = 0,
     ) -> None:
         self.device = torch.device(device)
         self.backbone = backbone.to(self.device).eval()
         self.index = index
         self.crop = crop
         self.batch_size = int(batch_size)
+        self.retrieval_k = int(retrieval_k)
+        if self.retrieval_k > 0 and not hasattr(index, "neighbours"):
+            raise ConfigError(
+                f"retrieval_k={retrieval_k} needs an index that returns neighbours "
+                f"(index=exhaustive); {type(index).__name__} does not"
+            )
+        self.map_poses: list[Pose] = []
 
     @torch.inference_mode()
-    def _forward(self, inputs: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Positions, quaternions and descriptors of uint8 inputs, in batches."""
-        positions, quaternions, features = [], [], []
+    def _forward(self, inputs: torch.Tensor) -> NetworkAnswers:
+        """Network answers for uint8 inputs, in batches of at most `batch_size`."""
+        parts = []
         for start in range(0, len(inputs), self.batch_size):
             batch = to_network_input(inputs[start : start + self.batch_size].to(self.device))
             out = self.backbone(batch)
-            positions.append(out.positions.double().cpu().numpy())
-            quaternions.append(out.quaternions.double().cpu().numpy())
-            features.append(out.features.double().cpu().numpy())
-        return np.concatenate(positions), np.concatenate(quaternions), np.concatenate(features)
+            n = len(batch)
+            parts.append(
+                NetworkAnswers(
+                    as_numpy(out.positions, n),
+                    as_numpy(out.quaternions, n),
+                    as_numpy(out.features, n),
+                    as_numpy(out.position_spread, n),
+                    as_numpy(out.orientation_spread_deg, n),
+                )
+            )
+        return NetworkAnswers(*(np.concatenate(column) for column in zip(*parts, strict=True)))
 
     def describe(self, images: Sequence[np.ndarray], quiet: bool = True) -> np.ndarray:
         """[N, D] descriptors of the centre crops: what the map is built from."""
@@ -62,35 +100,57 @@ class Relocalizer:
         for start in range(0, len(images), self.batch_size):
             strips = [Strip(image, size) for image in images[start : start + self.batch_size]]
             batch = torch.stack([s.cut(s.window(s.centre_crop())) for s in strips])
-            features.append(self._forward(batch)[2])
+            features.append(self._forward(batch).features)
             progress.advance(len(strips))
         progress.close()
         return np.concatenate(features)
 
-    def fit(self, images: Sequence[np.ndarray], quiet: bool = True) -> np.ndarray:
-        """Build the map from training images; returns their descriptors."""
+    def fit(
+        self,
+        images: Sequence[np.ndarray],
+        poses: Sequence[Pose] | None = None,
+        quiet: bool = True,
+    ) -> np.ndarray:
+        """Build the map from training images (and their poses, for retrieval).
+
+        Returns:
+            The [N, D] training descriptors.
+        """
+        if self.retrieval_k > 0 and (poses is None or len(poses) != len(images)):
+            raise DataError("retrieval needs the pose of every map image: fit(images, poses)")
         features = self.describe(images, quiet=quiet)
         self.index.fit(features)
+        self.map_poses = list(poses) if poses is not None else []
         return features
+
+    def _retrieved_pose(self, features: np.ndarray) -> Pose:
+        distances, indices = self.index.neighbours(features[None], self.retrieval_k)
+        weights = 1.0 / (distances[0] + 1e-6)
+        weights /= weights.sum()
+        poses = [self.map_poses[i] for i in indices[0]]
+        position = np.sum([w * p.position for w, p in zip(weights, poses, strict=True)], axis=0)
+        quaternion = mean_quaternion(np.stack([p.quaternion for p in poses]), weights)
+        return Pose(position, quaternion)
 
     def localize(self, image: np.ndarray) -> Localization:
         """Pose of one RGB image (H x W x 3 uint8) through the crop search."""
         start = time.perf_counter()
         strip = Strip(image, self.backbone.input_size)
-        # Network results per strip window: offsets that round to the same window
-        # are the same network input, so it is computed once.
-        results: dict[tuple[int, int], tuple[float, np.ndarray, np.ndarray]] = {}
+        # Network answers per strip window: offsets that round to the same window are
+        # the same network input, so it is computed once.
+        results: dict[tuple[int, int], tuple[float, NetworkAnswers]] = {}
 
         def evaluate(corners: list[tuple[int, int]]) -> None:
             new = list(dict.fromkeys(c for c in corners if c not in results))
             if not new:
                 return
-            positions, quaternions, features = self._forward(
-                torch.stack([strip.cut(c) for c in new])
-            )
-            distances = self.index.distance(features)
+            answers = self._forward(torch.stack([strip.cut(c) for c in new]))
+            distances = self.index.distance(answers.features)
             for i, corner in enumerate(new):
-                results[corner] = (float(distances[i]), positions[i], quaternions[i])
+                results[corner] = (
+                    float(distances[i]),
+                    NetworkAnswers(*(column[i] for column in answers)),
+                )
 
         def distance(crops: Sequence[Crop]) -> np.ndarray:
             corners = [strip.window(c) for c in crops]
@@ -100,11 +160,17 @@ class Relocalizer:
         chosen = self.crop.search(strip.width, strip.height, distance)
         corner = strip.window(chosen)
         evaluate([corner])
-        best_distance, position, quaternion = results[corner]
+        best_distance, answer = results[corner]
+        if self.retrieval_k > 0:
+            pose = self._retrieved_pose(answer.features)
+        else:
+            pose = Pose(answer.positions, answer.quaternions)
         return Localization(
-            pose=Pose(position, quaternion),
+            pose=pose,
             crop=chosen,
             distance=best_distance,
             evaluations=len(results),
             seconds=time.perf_counter() - start,
+            position_spread=float(answer.position_spread),
+            orientation_spread_deg=float(answer.orientation_spread_deg),
         )

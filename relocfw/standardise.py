@@ -37,20 +37,34 @@ def check_features(features: np.ndarray, dim: int | None = None) -> np.ndarray:
     return features
 
 
-def nearest(queries: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Euclidean distance to, and index of, the nearest point for each query.
+def k_nearest(queries: np.ndarray, points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """[n, k] Euclidean distances to, and indices of, the k nearest points, closest first.
 
     Uses |a|^2 + |b|^2 - 2ab (one matrix product) in chunks, so memory stays
     bounded for large maps.
     """
+    k = min(k, len(points))
     point_norms = np.einsum("ij,ij->i", points, points)
-    distances = np.empty(len(queries))
-    indices = np.empty(len(queries), dtype=np.int64)
+    distances = np.empty((len(queries), k))
+    indices = np.empty((len(queries), k), dtype=np.int64)
     chunk = max(1, 2**24 // max(1, len(points)))
     for start in range(0, len(queries), chunk):
         q = queries[start : start + chunk]
         squared = np.einsum("ij,ij->i", q, q)[:, None] + point_norms[None, :] - 2 * q @ points.T
-        best = np.argmin(squared, axis=1)
+        if k < len(points):
+            best = np.argpartition(squared, k - 1, axis=1)[:, :k]
+        else:
+            best = np.broadcast_to(np.arange(len(points)), squared.shape)
+        order = np.argsort(np.take_along_axis(squared, best, axis=1), axis=1, kind="stable")
+        best = np.take_along_axis(best, order, axis=1)
         indices[start : start + chunk] = best
-        distances[start : start + chunk] = np.sqrt(np.maximum(squared[np.arange(len(q)), best], 0))
+        distances[start : start + chunk] = np.sqrt(
+            np.maximum(np.take_along_axis(squared, best, axis=1), 0)
+        )
     return distances, indices
+
+
+def nearest(queries: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance to, and index of, the nearest point for each query."""
+    distances, indices = k_nearest(queries, points, 1)
+    return distances[:, 0], indices[:, 0]

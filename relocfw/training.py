@@ -14,7 +14,7 @@ from relocfw.checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_atomic
 from relocfw.errors import ConfigError, DataError
 from relocfw.imaging import Strip, to_network_input
 from relocfw.interfaces import Backbone
-from relocfw.loss import posenet_loss
+from relocfw.loss import FixedWeighting, LearnedWeighting, posenet_loss
 from relocfw.options import integer_at_least, real_number
 from relocfw.progress import Progress
 from relocfw.values import Pose
@@ -32,7 +32,10 @@ class TrainSettings:
         lr_schedule: "constant" (paper) or "cosine" (decays to 1% by the end).
         momentum: SGD momentum.
         weight_decay: L2 penalty.
-        beta: weight of the quaternion error against position error in metres.
+        loss: "fixed" (paper: position + beta x orientation) or "learned" (Kendall &
+            Cipolla 2017 homoscedastic weighting).
+        beta: weight of the quaternion error against position error in metres (fixed).
+        learned_init: initial (s_x, s_q) of the learned weighting.
         auxiliary_weights: loss weights of the two auxiliary heads.
         random_crops: train on a random square crop of each image (paper), not the centre.
         checkpoint_every: steps between resumable checkpoints.
@@ -46,7 +49,9 @@ class TrainSettings:
     lr_schedule: str = "constant"
     momentum: float = 0.9
     weight_decay: float = 0.0
+    loss: str = "fixed"
     beta: float = 250.0
+    learned_init: tuple[float, float] = (0.0, -3.0)
     auxiliary_weights: tuple[float, float] = (0.3, 0.3)
     random_crops: bool = True
     checkpoint_every: int = 500
@@ -61,6 +66,10 @@ class TrainSettings:
             raise ConfigError("train.auxiliary_weights must hold two numbers (aux1, aux2)")
         for weight in self.auxiliary_weights:
             real_number("train.auxiliary_weights", weight)
+        if self.loss not in ("fixed", "learned"):
+            raise ConfigError(f"train.loss must be 'fixed' or 'learned', got {self.loss!r}")
+        if len(self.learned_init) != 2:
+            raise ConfigError("train.learned_init must hold two numbers (s_x, s_q)")
         if self.optimizer not in ("sgd", "adam"):
             raise ConfigError(f"train.optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
         if self.lr_schedule not in ("constant", "cosine"):
@@ -125,13 +134,20 @@ def learning_rate(settings: TrainSettings, step: int) -> float:
     return settings.lr * (0.01 + 0.99 * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
-def make_optimizer(backbone: Backbone, settings: TrainSettings) -> torch.optim.Optimizer:
+def make_weighting(settings: TrainSettings) -> torch.nn.Module:
+    if settings.loss == "learned":
+        return LearnedWeighting(*settings.learned_init)
+    return FixedWeighting(settings.beta)
+
+
+def make_optimizer(
+    modules: Sequence[torch.nn.Module], settings: TrainSettings
+) -> torch.optim.Optimizer:
+    parameters = [p for module in modules for p in module.parameters()]
     if settings.optimizer == "adam":
-        return torch.optim.Adam(
-            backbone.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
-        )
+        return torch.optim.Adam(parameters, lr=settings.lr, weight_decay=settings.weight_decay)
     return torch.optim.SGD(
-        backbone.parameters(),
+        parameters,
         lr=settings.lr,
         momentum=settings.momentum,
         weight_decay=settings.weight_decay,
@@ -162,7 +178,8 @@ def train_backbone(
         positions.mean(axis=0), float(max(positions.std(axis=0).mean(), 1e-3))
     )
     backbone.to(device)
-    optimizer = make_optimizer(backbone, settings)
+    weighting = make_weighting(settings).to(device)
+    optimizer = make_optimizer([backbone, weighting], settings)
     losses: list[float] = []
     step = 0
     if checkpoint is not None and Path(checkpoint).is_file():
@@ -170,6 +187,7 @@ def train_backbone(
         if state.get("key") != key:
             raise DataError(f"{checkpoint} belongs to other settings (key {state.get('key')})")
         backbone.load_state_dict(state["model"])
+        weighting.load_state_dict(state["weighting"])
         if state["complete"]:
             return TrainingRun(list(state["losses"]), reused=True)
         optimizer.load_state_dict(state["optimizer"])
@@ -185,6 +203,7 @@ def train_backbone(
                 "complete": complete,
                 "iteration": step,
                 "model": backbone.state_dict(),
+                "weighting": weighting.state_dict(),
                 "optimizer": optimizer.state_dict(),
                 "generator": generator.get_state(),
                 "torch_rng": torch.get_rng_state(),
@@ -208,7 +227,7 @@ def train_backbone(
             output,
             true_positions.to(device),
             true_quaternions.to(device),
-            settings.beta,
+            weighting,
             settings.auxiliary_weights,
         )
         if not torch.isfinite(loss):

@@ -44,12 +44,17 @@ class PoseOutput:
         features: [B, D] image descriptors used for similarity.
         auxiliary: extra (positions, quaternions) pairs from auxiliary heads, used only
             by the training loss; empty when the backbone has none.
+        position_spread: [B] uncertainty in metres (sqrt of the trace of the position
+            covariance) when the backbone samples (Bayesian PoseNet), else None.
+        orientation_spread_deg: [B] mean angle of the samples from the mean rotation.
     """
 
     positions: torch.Tensor
     quaternions: torch.Tensor
     features: torch.Tensor
     auxiliary: tuple[tuple[torch.Tensor, torch.Tensor], ...] = field(default=())
+    position_spread: torch.Tensor | None = None
+    orientation_spread_deg: torch.Tensor | None = None
 
 
 @dataclass(frozen=True)
@@ -61,3 +66,5 @@ class Localization:
     distance: float  # descriptor distance of the chosen crop to the map
     evaluations: int  # distinct crops that went through the network
     seconds: float
+    position_spread: float = float("nan")  # Bayesian uncertainty (m), NaN when not sampled
+    orientation_spread_deg: float = float("nan")

@@ -7,26 +7,52 @@ from relocfw.checkpoints import load_checkpoint
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.errors import ConfigError
-from relocfw.loss import head_loss, posenet_loss
+from relocfw.loss import FixedWeighting, LearnedWeighting, head_errors, posenet_loss
 from relocfw.plugins.posenet import PoseNet
 from relocfw.training import TrainingImages, TrainSettings, train_backbone
 from relocfw.values import PoseOutput
 
 
-def test_head_loss_is_position_error_plus_beta_quaternion_error():
+def test_fixed_loss_is_position_error_plus_beta_quaternion_error():
     positions = torch.tensor([[3.0, 4.0, 0.0]])
     quaternions = torch.tensor([[2.0, 0.0, 0.0, 0.0]])  # normalised to (1, 0, 0, 0)
     true_q = torch.tensor([[0.0, 1.0, 0.0, 0.0]])
-    loss = head_loss(positions, quaternions, torch.zeros(1, 3), true_q, beta=10.0)
-    assert loss.item() == pytest.approx(5.0 + 10.0 * np.sqrt(2.0))
+    errors = head_errors(positions, quaternions, torch.zeros(1, 3), true_q)
+    assert FixedWeighting(10.0)(*errors).item() == pytest.approx(5.0 + 10.0 * np.sqrt(2.0))
 
 
 def test_auxiliary_heads_are_weighted():
     zero_p, unit_q = torch.zeros(1, 3), torch.tensor([[1.0, 0, 0, 0]])
     off_p = torch.tensor([[1.0, 0, 0]])
     output = PoseOutput(zero_p, unit_q, torch.zeros(1, 2), ((off_p, unit_q), (2 * off_p, unit_q)))
-    loss = posenet_loss(output, zero_p, unit_q, beta=1.0, auxiliary_weights=(0.3, 0.3))
+    loss = posenet_loss(output, zero_p, unit_q, FixedWeighting(1.0), auxiliary_weights=(0.3, 0.3))
     assert loss.item() == pytest.approx(0.3 * 1 + 0.3 * 2)
+
+
+def test_learned_weighting_formula_and_its_optimum():
+    weighting = LearnedWeighting(s_position=0.5, s_orientation=-1.0)
+    value = weighting(torch.tensor(2.0), torch.tensor(0.1))
+    expected = 2.0 * np.exp(-0.5) + 0.5 + 0.1 * np.exp(1.0) - 1.0
+    assert value.item() == pytest.approx(expected)
+    # Minimising over s gives s = log(error): each task is weighted by 1 / its error.
+    optimiser = torch.optim.Adam(weighting.parameters(), lr=0.05)
+    for _ in range(800):
+        optimiser.zero_grad()
+        weighting(torch.tensor(2.0), torch.tensor(0.1)).backward()
+        optimiser.step()
+    assert weighting.s_position.item() == pytest.approx(np.log(2.0), abs=0.02)
+    assert weighting.s_orientation.item() == pytest.approx(np.log(0.1), abs=0.02)
+
+
+def test_learned_loss_trains_its_weights_and_checkpoints_them(data, tmp_path):
+    settings = TrainSettings(
+        iterations=4, batch_size=4, optimizer="adam", lr=1e-2, loss="learned", checkpoint_every=2
+    )
+    checkpoint = tmp_path / "learned.pt"
+    train_backbone(tiny_model(), data, settings, checkpoint, key="L", quiet=True)
+    state = load_checkpoint(checkpoint)["weighting"]
+    assert state["s_position"].item() != 0.0
+    assert state["s_orientation"].item() != -3.0
 
 
 @pytest.fixture
