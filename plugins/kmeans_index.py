@@ -40,6 +40,11 @@ class KMeansIndex(SimilarityIndex):
         kmeans.fit(self.zscore(features))
         self.centres = kmeans.cluster_centers_
 
+    def assign(self, features: np.ndarray) -> np.ndarray:
+        """Cluster of each descriptor (for plots of the map)."""
+        features = check_features(features, self.centres.shape[1])
+        return nearest(self.zscore(features), self.centres)[1]
+
     def distance(self, features: np.ndarray) -> np.ndarray:
         if not hasattr(self, "centres"):
             raise DataError("the index is not fitted yet: call fit() first")

@@ -3,31 +3,36 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import hydra
 import torch
+from hydra import compose
 from hydra.core.hydra_config import HydraConfig
-from hydra.errors import InstantiationException
+from hydra.errors import HydraException, InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from relocfw import jobs
+from relocfw.compare_job import MapView, write_comparison
 from relocfw.errors import ConfigError, RelocfwError
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
+from relocfw.options import integer_at_least
+from relocfw.pipeline import Relocalizer
 from relocfw.training import TrainSettings
 
-TASKS = ("relocalize", "train")
+TASKS = ("relocalize", "train", "compare")
 INTERFACES = {"backbone": Backbone, "index": SimilarityIndex, "crop": CropSearch}
 
 
-def build(cfg: DictConfig, group: str, **extra: Any) -> Any:
+def build(cfg: DictConfig, group: str, choice: str) -> Any:
     """Instantiate the option chosen for `group`, turning failures into one message."""
-    choice = HydraConfig.get().runtime.choices.get(group, "?")
     try:
-        obj = instantiate(cfg[group], **extra)
+        obj = instantiate(cfg[group])
     except InstantiationException as error:
         cause = error.__cause__ or error
         if isinstance(cause, RelocfwError):
@@ -66,59 +71,171 @@ def pick_device(name: str) -> torch.device:
     return device
 
 
-def run(cfg: DictConfig) -> None:
-    if cfg.task not in TASKS:
-        raise ConfigError(f"task must be one of {', '.join(TASKS)}, got {cfg.task!r}")
-    unknown = set(cfg.baselines) - set(jobs.BASELINES)
-    if unknown:
-        raise ConfigError(f"baselines: unknown {sorted(unknown)}; known: {list(jobs.BASELINES)}")
-    if int(cfg.query_batch_size) < 1:
-        raise ConfigError(f"query_batch_size must be at least 1, got {cfg.query_batch_size}")
-    device = pick_device(cfg.device)
+@dataclass
+class Method:
+    """Everything one configured method needs, built and checked."""
+
+    label: str
+    backbone: Backbone
+    index: SimilarityIndex
+    crop: CropSearch
+    retrieval_k: int
+    settings: TrainSettings
+    identity: dict[str, Any]
+
+    def relocalizer(self, device: torch.device, batch_size: int) -> Relocalizer:
+        return Relocalizer(
+            self.backbone, self.index, self.crop, device, batch_size, self.retrieval_k
+        )
+
+
+def method_label(cfg: DictConfig, choices: Mapping[str, str]) -> str:
+    label = f"{choices['crop']} + {choices['index']}"
+    if choices["index"] == "kmeans":
+        label += f" (k={cfg.index.k})"
+    if int(cfg.retrieval_k) > 0:
+        label = f"retrieval of {cfg.retrieval_k} nearest, {choices['crop']} crop"
+    if choices["backbone"] != "posenet" or int(cfg.backbone.get("mc_samples", 0)) > 0:
+        samples = int(cfg.backbone.get("mc_samples", 0))
+        label = f"{choices['backbone']}{f' x{samples} MC' if samples else ''}: {label}"
+    return label
+
+
+def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None = None) -> Method:
+    """Build and check every plugin before any slow work, so a bad option fails fast."""
     settings = train_settings(cfg)
+    retrieval_k = integer_at_least("retrieval_k", cfg.retrieval_k, 0)
     # Seeded here, in the CLI, so the same command initialises the same network.
     torch.manual_seed(int(cfg.seed))
-    backbone = build(cfg, "backbone")
-    # Build every plugin before any slow work, so a bad option fails in a second.
-    index = build(cfg, "index") if cfg.task == "relocalize" else None
-    crop = build(cfg, "crop") if cfg.task == "relocalize" else None
-    dataset = build(cfg, "dataset")
+    backbone = build(cfg, "backbone", choices["backbone"])
+    index = build(cfg, "index", choices["index"])
+    crop = build(cfg, "crop", choices["crop"])
+    backbone_settings = OmegaConf.to_container(cfg.backbone, resolve=True)
     identity = {
         "dataset": {
             k: v
             for k, v in OmegaConf.to_container(cfg.dataset, resolve=True).items()
             if k not in ("cache_dir", "quiet")
         },
-        "backbone": OmegaConf.to_container(cfg.backbone, resolve=True),
+        "backbone": {
+            k: v for k, v in backbone_settings.items() if k not in backbone.test_time_options
+        },
     }
-    quiet = bool(cfg.quiet)
-    train = jobs.load_split(dataset, "train", quiet)
-    if index is not None:
-        index.check_map_size(len(train[0]))
-    checkpoint, reused = jobs.train_or_reuse(
-        backbone, *train, settings, identity, Path(cfg.cache_dir), device, quiet
-    )
-    print(f"model: {checkpoint} ({'reused' if reused else 'trained'})")
-    if cfg.task == "train":
-        return
-    test = jobs.load_split(dataset, "test", quiet)
-    choices = HydraConfig.get().runtime.choices
-    method = f"{choices['crop']} + {choices['index']}"
-    if choices["index"] == "kmeans":
-        method += f" (k={cfg.index.k})"
-    run_dir = Path(HydraConfig.get().runtime.output_dir)
-    jobs.relocalize(
+    return Method(
+        label or method_label(cfg, choices),
         backbone,
         index,
         crop,
-        method,
+        retrieval_k,
+        settings,
+        identity,
+    )
+
+
+def check_common(cfg: DictConfig) -> torch.device:
+    if cfg.task not in TASKS:
+        raise ConfigError(f"task must be one of {', '.join(TASKS)}, got {cfg.task!r}")
+    unknown = set(cfg.baselines) - set(jobs.BASELINES)
+    if unknown:
+        raise ConfigError(f"baselines: unknown {sorted(unknown)}; known: {list(jobs.BASELINES)}")
+    integer_at_least("query_batch_size", cfg.query_batch_size, 1)
+    return pick_device(cfg.device)
+
+
+def prepare_model(cfg: DictConfig, method: Method, train: tuple, device: torch.device) -> None:
+    checkpoint, reused = jobs.train_or_reuse(
+        method.backbone,
+        *train,
+        method.settings,
+        method.identity,
+        Path(cfg.cache_dir),
+        device,
+        bool(cfg.quiet),
+    )
+    print(f"model: {checkpoint} ({'reused' if reused else 'trained'})")
+
+
+def run(cfg: DictConfig) -> None:
+    device = check_common(cfg)
+    if cfg.task == "compare":
+        run_compare(cfg, device)
+        return
+    choices = HydraConfig.get().runtime.choices
+    method = build_method(cfg, choices)
+    dataset = build(cfg, "dataset", choices["dataset"])
+    quiet = bool(cfg.quiet)
+    train = jobs.load_split(dataset, "train", quiet)
+    if cfg.task == "relocalize":
+        method.index.check_map_size(len(train[0]))
+    prepare_model(cfg, method, train, device)
+    if cfg.task == "train":
+        return
+    test = jobs.load_split(dataset, "test", quiet)
+    jobs.relocalize(
+        method.relocalizer(device, int(cfg.query_batch_size)),
+        method.label,
         train,
         test,
-        run_dir,
-        device,
+        Path(HydraConfig.get().runtime.output_dir),
         baselines=list(cfg.baselines),
-        query_batch_size=int(cfg.query_batch_size),
+        centre_label=f"{choices['backbone']} (centre crop)",
         quiet=quiet,
+    )
+
+
+def compose_method(overrides: list[str], name: str) -> tuple[DictConfig, Mapping[str, str]]:
+    try:
+        cfg = compose(config_name="config", overrides=overrides, return_hydra_config=True)
+    except (HydraException, OmegaConfBaseException) as error:
+        raise ConfigError(f"compare.methods.{name}: {error}") from error
+    return cfg, cfg.hydra.runtime.choices
+
+
+def run_compare(cfg: DictConfig, device: torch.device) -> None:
+    """Every method of compare.methods on every scene; each model trained once."""
+    methods = OmegaConf.to_container(cfg.compare.methods, resolve=True)
+    if not methods:
+        raise ConfigError("compare.methods is empty")
+    scenes = list(cfg.compare.scenes or [None])
+    reference = str(cfg.compare.reference)
+    if reference not in methods:
+        raise ConfigError(f"compare.reference={reference!r} is not in compare.methods")
+    base = [o for o in HydraConfig.get().overrides.task if not o.startswith(("task=", "compare."))]
+    quiet = bool(cfg.quiet)
+    # Compose and build every method first: a typo fails before hours of training.
+    plans = {}
+    for scene in scenes:
+        scene_override = [f"dataset.scene={scene}"] if scene is not None else []
+        for name, overrides in methods.items():
+            method_cfg, choices = compose_method(base + scene_override + list(overrides), name)
+            plans[scene, name] = (method_cfg, choices)
+    results, training, maps = {}, {}, {}
+    for scene in scenes:
+        first_cfg, first_choices = plans[scene, next(iter(methods))]
+        dataset = build(first_cfg, "dataset", first_choices["dataset"])
+        label = scene or first_choices["dataset"]
+        train = jobs.load_split(dataset, "train", quiet)
+        test = jobs.load_split(dataset, "test", quiet)
+        results[label], training[label], maps[label] = {}, train[0], None
+        for name in methods:
+            method_cfg, choices = plans[scene, name]
+            method = build_method(method_cfg, choices, label=name)
+            method.index.check_map_size(len(train[0]))
+            prepare_model(method_cfg, method, train, device)
+            relocalizer = method.relocalizer(device, int(cfg.query_batch_size))
+            result, features = jobs.run_method(name, relocalizer, train, test, quiet)
+            results[label][name] = result
+            if maps[label] is None and hasattr(method.index, "centres"):
+                standardised = method.index.zscore(features)
+                labels = method.index.assign(features)
+                maps[label] = MapView(standardised, method.index.centres, labels)
+    write_comparison(
+        results,
+        training,
+        maps,
+        reference,
+        Path(HydraConfig.get().runtime.output_dir),
+        seed=int(cfg.seed),
     )
 
 

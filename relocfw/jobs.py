@@ -13,8 +13,14 @@ import torch
 from relocfw.checkpoints import settings_key, write_text_atomic
 from relocfw.data.frames import Frame, mean_pose, read_images
 from relocfw.errors import DataError
-from relocfw.evaluation import constant_answer, evaluate, per_image_csv, summarise
-from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
+from relocfw.evaluation import (
+    MethodResult,
+    constant_answer,
+    evaluate,
+    per_image_csv,
+    summarise,
+)
+from relocfw.interfaces import Backbone
 from relocfw.pipeline import Relocalizer
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.report import format_table
@@ -70,35 +76,61 @@ def train_or_reuse(
     return checkpoint, run.reused
 
 
+def run_method(
+    method: str,
+    relocalizer: Relocalizer,
+    train: tuple[Sequence[Frame], Sequence[np.ndarray]],
+    test: tuple[Sequence[Frame], Sequence[np.ndarray]],
+    quiet: bool = False,
+) -> tuple[MethodResult, np.ndarray]:
+    """Fit the map on the training split and relocalize the test split.
+
+    Returns:
+        The method's answers and the map's [N, D] training descriptors.
+    """
+    features = relocalizer.fit(train[1], [f.pose for f in train[0]], quiet=quiet)
+    return evaluate(method, relocalizer, *test, quiet=quiet), features
+
+
+def write_results(results: Sequence[MethodResult], run_dir: Path, name: str = "") -> str:
+    """results{name}.csv, summary{name}.json and table{name}.txt; returns the table."""
+    summaries = [summarise(r) for r in results]
+    run_dir = Path(run_dir)
+    write_text_atomic(per_image_csv(results), run_dir / f"results{name}.csv")
+    write_text_atomic(json.dumps(summaries, indent=2) + "\n", run_dir / f"summary{name}.json")
+    table = format_table(summaries)
+    write_text_atomic(table + "\n", run_dir / f"table{name}.txt")
+    return table
+
+
 def relocalize(
-    backbone: Backbone,
-    index: SimilarityIndex,
-    crop: CropSearch,
+    relocalizer: Relocalizer,
     method: str,
     train: tuple[Sequence[Frame], Sequence[np.ndarray]],
     test: tuple[Sequence[Frame], Sequence[np.ndarray]],
     run_dir: Path,
-    device: torch.device,
     baselines: Sequence[str] = BASELINES,
-    query_batch_size: int = 64,
+    centre_label: str = "posenet (centre crop)",
     quiet: bool = False,
-) -> list[dict[str, Any]]:
-    """Fit the map, relocalize the test split, write results.csv and summary.json."""
-    relocalizer = Relocalizer(backbone, index, crop, device, query_batch_size)
-    relocalizer.fit(train[1], [f.pose for f in train[0]], quiet=quiet)
+) -> list[MethodResult]:
+    """The main job after training: the method and its baselines, results written."""
     results = []
     if "mean_pose" in baselines:
         results.append(constant_answer("mean training pose", mean_pose(train[0]), test[0]))
-    if "posenet" in baselines and not isinstance(crop, CentreCrop):
-        centre = Relocalizer(backbone, index, CentreCrop(), device, query_batch_size)
-        results.append(evaluate("posenet (centre crop)", centre, *test, quiet=quiet))
-    results.append(evaluate(method, relocalizer, *test, quiet=quiet))
-    summaries = [summarise(r) for r in results]
-    run_dir = Path(run_dir)
-    write_text_atomic(per_image_csv(results), run_dir / "results.csv")
-    write_text_atomic(json.dumps(summaries, indent=2) + "\n", run_dir / "summary.json")
-    table = format_table(summaries)
-    write_text_atomic(table + "\n", run_dir / "table.txt")
-    print(table)
-    print(f"\nresults: {run_dir / 'results.csv'}, {run_dir / 'summary.json'}")
-    return summaries
+    method_result, _ = run_method(method, relocalizer, train, test, quiet)
+    if "posenet" in baselines and not (
+        isinstance(relocalizer.crop, CentreCrop) and relocalizer.retrieval_k == 0
+    ):
+        centre = Relocalizer(
+            relocalizer.backbone,
+            relocalizer.index,
+            CentreCrop(),
+            relocalizer.device,
+            relocalizer.batch_size,
+        )
+        # The map is already fitted; only the queries run again.
+        results.append(evaluate(centre_label, centre, *test, quiet=quiet))
+    results.append(method_result)
+    print(write_results(results, run_dir))
+    print(f"\nresults: {Path(run_dir) / 'results.csv'}, {Path(run_dir) / 'summary.json'}")
+    return results

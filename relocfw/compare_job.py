@@ -1,0 +1,106 @@
+"""`relocfw task=compare`: writing the comparison table, figures and uncertainty check."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from relocfw import figures
+from relocfw.checkpoints import write_text_atomic
+from relocfw.comparison import as_csv, as_markdown, median_errors, table_rows, uncertainty_check
+from relocfw.data.frames import Frame, mean_pose
+from relocfw.evaluation import MethodResult, constant_answer
+from relocfw.jobs import write_results
+
+
+@dataclass(frozen=True)
+class MapView:
+    """What the t-SNE figure shows: standardised map descriptors and k-means centres."""
+
+    features: np.ndarray
+    centres: np.ndarray
+    labels: np.ndarray
+
+
+def safe_name(scene: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in scene)
+
+
+def write_comparison(
+    results: Mapping[str, Mapping[str, MethodResult]],
+    training_frames: Mapping[str, Sequence[Frame]],
+    maps: Mapping[str, MapView | None],
+    reference: str,
+    run_dir: Path,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Table 1 (Markdown + CSV, printed), per-scene results and the five figures."""
+    run_dir = Path(run_dir)
+    header, rows = table_rows(median_errors(results), reference)
+    markdown = as_markdown(header, rows)
+    write_text_atomic(markdown, run_dir / "comparison.md")
+    write_text_atomic(as_csv(header, rows), run_dir / "comparison.csv")
+    print("\nMedian position (m) and orientation (deg) errors; average = mean over scenes\n")
+    print(markdown)
+    summary: dict[str, Any] = {"reference": reference, "scenes": {}}
+    written = []
+    for scene, by_method in results.items():
+        name = safe_name(scene)
+        method_results = list(by_method.values())
+        floor = constant_answer(
+            "mean training pose", mean_pose(training_frames[scene]), method_results[0].frames
+        )
+        table = write_results([floor, *method_results], run_dir, name=f"_{name}")
+        print(f"{scene}:\n{table}\n")
+        title = f"({scene})"
+        out = run_dir / name
+        written += [
+            figures.error_histogram(
+                method_results, "position", Path(f"{out}_position_error_histogram.png"), title
+            ),
+            figures.error_histogram(
+                method_results,
+                "orientation",
+                Path(f"{out}_orientation_error_histogram.png"),
+                title,
+            ),
+            figures.error_curves(method_results, Path(f"{out}_error_per_image.png"), title),
+            figures.trajectory_top_down(
+                training_frames[scene],
+                method_results,
+                Path(f"{out}_trajectory_top_down.png"),
+                title,
+            ),
+        ]
+        view = maps.get(scene)
+        if view is not None:
+            written.append(
+                figures.tsne_of_map(
+                    view.features,
+                    view.centres,
+                    view.labels,
+                    Path(f"{out}_tsne_kmeans_map.png"),
+                    seed=seed,
+                    title=title,
+                )
+            )
+        checks = {m: uncertainty_check(r) for m, r in by_method.items()}
+        checks = {m: c for m, c in checks.items() if c is not None}
+        for method, check in checks.items():
+            print(
+                f"{method} uncertainty ({scene}): median position error of the "
+                f"{check['queries_per_group']} most uncertain queries "
+                f"{check['most_uncertain_median_position_m']:.3f} m, of the least uncertain "
+                f"{check['least_uncertain_median_position_m']:.3f} m "
+                f"(rank correlation {check['spread_error_rank_correlation']:.2f})"
+            )
+        summary["scenes"][scene] = {"uncertainty": checks}
+    summary["figures"] = [str(p) for p in written]
+    write_text_atomic(json.dumps(summary, indent=2) + "\n", run_dir / "comparison.json")
+    print(f"\ncomparison: {run_dir / 'comparison.md'}; figures: {len(written)} PNG in {run_dir}")
+    return summary

@@ -1,0 +1,112 @@
+"""The Table-1 style comparison: scenes x methods, median errors, error decrease."""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+from relocfw.evaluation import MethodResult
+
+AVERAGE = "average"
+
+
+def error_decrease(reference: float, value: float) -> float:
+    """How much lower `value` is than `reference`, in percent (negative: higher)."""
+    if reference == 0:
+        return 0.0 if value == 0 else float("-inf")
+    return 100.0 * (reference - value) / reference
+
+
+def median_errors(
+    results: Mapping[str, Mapping[str, MethodResult]],
+) -> dict[str, dict[str, tuple[float, float]]]:
+    """scene -> method -> (median position m, median orientation deg), plus an average row.
+
+    The average row is the mean over scenes of the per-scene medians, as in the
+    paper's tables (not the median over all queries pooled).
+    """
+    table = {
+        scene: {
+            method: (
+                float(np.median(result.position_errors())),
+                float(np.median(result.orientation_errors())),
+            )
+            for method, result in by_method.items()
+        }
+        for scene, by_method in results.items()
+    }
+    methods = list(next(iter(table.values())))
+    table[AVERAGE] = {
+        method: (
+            float(np.mean([table[s][method][0] for s in results])),
+            float(np.mean([table[s][method][1] for s in results])),
+        )
+        for method in methods
+    }
+    return table
+
+
+def table_rows(
+    table: Mapping[str, Mapping[str, tuple[float, float]]], reference: str
+) -> tuple[list[str], list[list[str]]]:
+    """Header and rows: each method's medians, then each other method's decrease."""
+    methods = list(next(iter(table.values())))
+    if reference not in methods:
+        raise KeyError(f"compare.reference {reference!r} is not one of the methods {methods}")
+    others = [m for m in methods if m != reference]
+    header = ["scene", *(f"{m} (m, deg)" for m in methods)]
+    header += [f"{m} decrease vs {reference} (pos %, ori %)" for m in others]
+    rows = []
+    for scene, by_method in table.items():
+        row = [scene] + [f"{p:.3f}, {o:.2f}" for p, o in by_method.values()]
+        ref_p, ref_o = by_method[reference]
+        for method in others:
+            p, o = by_method[method]
+            row.append(f"{error_decrease(ref_p, p):.1f}, {error_decrease(ref_o, o):.1f}")
+        rows.append(row)
+    return header, rows
+
+
+def as_markdown(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def as_csv(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    stream = io.StringIO()
+    writer = csv.writer(stream)
+    writer.writerow(header)
+    writer.writerows(rows)
+    return stream.getvalue()
+
+
+def ranks(values: np.ndarray) -> np.ndarray:
+    return np.argsort(np.argsort(values))
+
+
+def uncertainty_check(result: MethodResult, share: float = 0.25) -> dict[str, float] | None:
+    """Median errors of the most and least uncertain queries (Bayesian PoseNet).
+
+    A useful uncertainty ranks queries by error: the top `share` by position spread
+    should have larger errors than the bottom `share`. None when not sampled.
+    """
+    spread = np.array([a.position_spread for a in result.answers])
+    if np.all(np.isnan(spread)):
+        return None
+    order = np.argsort(spread)
+    count = max(1, int(round(share * len(order))))
+    low, high = order[:count], order[-count:]
+    positions, orientations = result.position_errors(), result.orientation_errors()
+    return {
+        "queries_per_group": count,
+        "least_uncertain_median_position_m": float(np.median(positions[low])),
+        "most_uncertain_median_position_m": float(np.median(positions[high])),
+        "least_uncertain_median_orientation_deg": float(np.median(orientations[low])),
+        "most_uncertain_median_orientation_deg": float(np.median(orientations[high])),
+        # Spearman correlation: Pearson's on ranks.
+        "spread_error_rank_correlation": float(np.corrcoef(ranks(spread), ranks(positions))[0, 1]),
+    }

@@ -1,0 +1,127 @@
+"""The comparison figures (matplotlib, Agg backend: no display needed)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
+import numpy as np  # noqa: E402
+from sklearn.manifold import TSNE  # noqa: E402
+
+from relocfw.data.frames import Frame, positions_of  # noqa: E402
+from relocfw.evaluation import MethodResult  # noqa: E402
+
+
+def save(figure: plt.Figure, path: Path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp.png")
+    figure.savefig(temporary, dpi=110, bbox_inches="tight")
+    plt.close(figure)
+    temporary.replace(path)
+    return path
+
+
+HISTOGRAM_KINDS = {
+    # kind: (axis label, good threshold, bad threshold, unit, minimum axis extent)
+    "position": ("position error (m)", 0.5, 1.0, " m", 1.0),
+    "orientation": ("orientation error (deg)", 15.0, 20.0, "°", 20.0),
+}
+
+
+def error_histogram(
+    results: Sequence[MethodResult], kind: str, path: Path, title: str = ""
+) -> Path:
+    """Figure 7: histogram of position or orientation errors, methods overlaid.
+
+    The legend gives each method's share under the paper's good threshold
+    (0.5 m / 15 deg) and over its bad one (1.0 m / 20 deg).
+    """
+    label, good, bad, unit, extent = HISTOGRAM_KINDS[kind]
+    errors = [
+        r.position_errors() if kind == "position" else r.orientation_errors() for r in results
+    ]
+    bins = np.linspace(0, max(extent, max(e.max() for e in errors)), 30)
+    figure, axis = plt.subplots(figsize=(7, 4.5))
+    for result, error in zip(results, errors, strict=True):
+        under, over = np.mean(error < good), np.mean(error > bad)
+        shares = f"{under:.0%} < {good:g}{unit}, {over:.0%} > {bad:g}{unit}"
+        axis.hist(
+            error, bins=bins, histtype="step", linewidth=1.8, label=f"{result.method}: {shares}"
+        )
+    for value in (good, bad):
+        axis.axvline(value, color="grey", linestyle=":", linewidth=1)
+    axis.set_xlabel(label)
+    axis.set_ylabel("queries")
+    axis.legend(fontsize=7)
+    axis.set_title(f"{kind.capitalize()} error histogram {title}".strip())
+    return save(figure, path)
+
+
+def error_curves(results: Sequence[MethodResult], path: Path, title: str = "") -> Path:
+    """Figure 8: position and orientation error of every test image, in order."""
+    figure, (top, bottom) = plt.subplots(2, 1, figsize=(12, 6), sharex=True)
+    for result in results:
+        top.plot(result.position_errors(), linewidth=1.2, label=result.method)
+        bottom.plot(result.orientation_errors(), linewidth=1.2, label=result.method)
+    top.set_ylabel("position error (m)")
+    bottom.set_ylabel("orientation error (deg)")
+    bottom.set_xlabel("test image (trajectory order)")
+    top.legend(fontsize=7)
+    figure.suptitle(f"Per-image errors {title}".strip())
+    return save(figure, path)
+
+
+def trajectory_top_down(
+    train: Sequence[Frame], results: Sequence[MethodResult], path: Path, title: str = ""
+) -> Path:
+    """Top-down (x, y) view: training path, test ground truth and each method's estimates."""
+    figure, axis = plt.subplots(figsize=(8, 7))
+    train_xy = positions_of(train)[:, :2]
+    axis.plot(*train_xy.T, ".", color="lightgrey", markersize=3, label="training poses")
+    truth = np.stack([f.pose.position for f in results[0].frames])[:, :2]
+    axis.plot(*truth.T, "-", color="black", linewidth=2, label="test ground truth")
+    for result in results:
+        estimates = np.stack([a.pose.position for a in result.answers])[:, :2]
+        axis.plot(*estimates.T, "o", markersize=3, alpha=0.8, label=result.method)
+    axis.set_aspect("equal")
+    axis.set_xlabel("x (m)")
+    axis.set_ylabel("y (m)")
+    axis.legend(fontsize=7)
+    axis.set_title(f"Trajectory, top-down {title}".strip())
+    return save(figure, path)
+
+
+def tsne_of_map(
+    features: np.ndarray,
+    centres: np.ndarray,
+    labels: np.ndarray,
+    path: Path,
+    seed: int = 0,
+    title: str = "",
+) -> Path:
+    """Figure 5: t-SNE of the standardised training descriptors and k-means centres.
+
+    Descriptors are coloured by their cluster; centres are black crosses.
+    """
+    points = np.concatenate([features, centres])
+    perplexity = float(min(30.0, max(2.0, (len(points) - 1) / 3)))
+    embedded = TSNE(perplexity=perplexity, init="pca", random_state=seed).fit_transform(points)
+    figure, axis = plt.subplots(figsize=(7, 6))
+    axis.scatter(*embedded[: len(features)].T, c=labels, cmap="tab20", s=8, alpha=0.7)
+    axis.scatter(
+        *embedded[len(features) :].T,
+        marker="x",
+        color="black",
+        s=40,
+        label=f"{len(centres)} k-means centres",
+    )
+    axis.legend(fontsize=8)
+    axis.set_title(f"t-SNE of the map's descriptors {title}".strip())
+    axis.set_xticks([])
+    axis.set_yticks([])
+    return save(figure, path)
