@@ -22,7 +22,7 @@ from relocfw.compare_job import MapView, write_comparison
 from relocfw.errors import ConfigError, RelocfwError
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.options import integer_at_least
-from relocfw.pipeline import Relocalizer
+from relocfw.pipeline import Relocalizer, check_retrieval
 from relocfw.training import TrainSettings
 
 TASKS = ("relocalize", "train", "compare")
@@ -110,6 +110,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     backbone = build(cfg, "backbone", choices["backbone"])
     index = build(cfg, "index", choices["index"])
     crop = build(cfg, "crop", choices["crop"])
+    check_retrieval(index, retrieval_k)
     backbone_settings = OmegaConf.to_container(cfg.backbone, resolve=True)
     identity = {
         "dataset": {

@@ -33,6 +33,15 @@ def as_numpy(tensor: torch.Tensor | None, count: int) -> np.ndarray:
     return tensor.double().cpu().numpy()
 
 
+def check_retrieval(index: SimilarityIndex, retrieval_k: int) -> None:
+    """Retrieval answers with map images' poses: the index must name its neighbours."""
+    if retrieval_k > 0 and not hasattr(index, "neighbours"):
+        raise ConfigError(
+            f"retrieval_k={retrieval_k} needs an index that returns neighbours "
+            f"(index=exhaustive); {type(index).__name__} does not"
+        )
+
+
 class Relocalizer:
     """Fits the map from training images and localizes query images.
 
@@ -66,11 +75,7 @@ class Relocalizer:
         self.crop = crop
         self.batch_size = int(batch_size)
         self.retrieval_k = int(retrieval_k)
-        if self.retrieval_k > 0 and not hasattr(index, "neighbours"):
-            raise ConfigError(
-                f"retrieval_k={retrieval_k} needs an index that returns neighbours "
-                f"(index=exhaustive); {type(index).__name__} does not"
-            )
+        check_retrieval(index, self.retrieval_k)
         self.map_poses: list[Pose] = []
 
     @torch.inference_mode()

@@ -74,6 +74,28 @@ def test_train_task_and_multirun(tmp_path, cache):
     assert (tmp_path / "multi" / "1" / "summary.json").is_file()
 
 
+def test_compare_writes_table_and_five_figures(tmp_path, cache):
+    run_dir = tmp_path / "compare"
+    result = relocfw([*TINY_OVERRIDES, "task=compare", f"hydra.run.dir={run_dir}"], tmp_path, cache)
+    assert result.returncode == 0, result.stderr
+    # Five methods, one trained model.
+    assert result.stdout.count("(trained)") <= 1 and result.stdout.count("(reused)") >= 4
+    header = (run_dir / "comparison.csv").read_text().splitlines()[0]
+    for method in ("PoseNet", "Bayesian PoseNet", "Retrieval", "Ours (GA + k-means)"):
+        assert method in header
+    assert "Bayesian PoseNet uncertainty" in result.stdout
+    pngs = sorted(p.name for p in run_dir.glob("*.png"))
+    assert pngs == [
+        "synthetic_error_per_image.png",
+        "synthetic_orientation_error_histogram.png",
+        "synthetic_position_error_histogram.png",
+        "synthetic_trajectory_top_down.png",
+        "synthetic_tsne_kmeans_map.png",
+    ]
+    summary = json.loads((run_dir / "comparison.json").read_text())
+    assert "Bayesian PoseNet" in summary["scenes"]["synthetic"]["uncertainty"]
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
@@ -85,6 +107,8 @@ def test_train_task_and_multirun(tmp_path, cache):
         (["train.optimizer=rmsprop"], "train.optimizer"),
         (["task=nosuch"], "task must be one of"),
         (["device=cuda:7"], "device"),
+        (["task=compare", "compare.reference=Nobody"], "compare.reference"),
+        (["retrieval_k=1"], "needs an index that returns neighbours"),
     ],
 )
 def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):
