@@ -13,7 +13,9 @@ import torch
 
 from relocfw.errors import DataError
 
-CHECKPOINT_FORMAT = 1
+# Bump when the layout of saved models changes: it is part of every checkpoint's key,
+# so an old checkpoint is never picked up by code that cannot read it.
+CHECKPOINT_FORMAT = 2
 
 
 def settings_key(settings: dict[str, Any]) -> str:

@@ -10,7 +10,7 @@ from typing import Any, Protocol
 import numpy as np
 import torch
 
-from relocfw.checkpoints import settings_key, write_text_atomic
+from relocfw.checkpoints import CHECKPOINT_FORMAT, settings_key, write_text_atomic
 from relocfw.data.frames import Frame, mean_pose, read_images
 from relocfw.errors import DataError
 from relocfw.evaluation import (
@@ -68,7 +68,12 @@ def train_or_reuse(
         The checkpoint path, and whether a finished model was reused.
     """
     key = settings_key(
-        {"identity": identity, "train": settings.__dict__, "frames": frames_fingerprint(frames)}
+        {
+            "format": CHECKPOINT_FORMAT,
+            "identity": identity,
+            "train": settings.__dict__,
+            "frames": frames_fingerprint(frames),
+        }
     )
     checkpoint = Path(cache_dir).expanduser() / "checkpoints" / f"{key}.pt"
     data = TrainingImages(images, [f.pose for f in frames], backbone.input_size)

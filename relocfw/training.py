@@ -186,8 +186,14 @@ def train_backbone(
         state = load_checkpoint(checkpoint)
         if state.get("key") != key:
             raise DataError(f"{checkpoint} belongs to other settings (key {state.get('key')})")
-        backbone.load_state_dict(state["model"])
-        weighting.load_state_dict(state["weighting"])
+        try:
+            backbone.load_state_dict(state["model"])
+            weighting.load_state_dict(state["weighting"])
+        except (RuntimeError, KeyError) as error:
+            raise DataError(
+                f"{checkpoint} does not fit this backbone ({str(error).splitlines()[0]}); "
+                "delete it or choose another cache_dir"
+            ) from error
         if state["complete"]:
             return TrainingRun(list(state["losses"]), reused=True)
         optimizer.load_state_dict(state["optimizer"])

@@ -6,7 +6,7 @@ import relocfw.training as training
 from relocfw.checkpoints import load_checkpoint
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.errors import ConfigError
+from relocfw.errors import ConfigError, DataError
 from relocfw.loss import FixedWeighting, LearnedWeighting, head_errors, posenet_loss
 from relocfw.plugins.posenet import PoseNet
 from relocfw.training import TrainingImages, TrainSettings, train_backbone
@@ -144,3 +144,13 @@ def test_settings_are_validated():
         TrainSettings(optimizer="rmsprop").validate()
     with pytest.raises(ConfigError, match="train.lr"):
         TrainSettings(lr="fast").validate()
+
+
+def test_checkpoint_of_another_architecture_is_refused_clearly(data, tmp_path):
+    checkpoint = tmp_path / "model.pt"
+    train_backbone(tiny_model(), data, SETTINGS, checkpoint, key="k", quiet=True)
+    other = PoseNet(input_size=32, width=0.125, feature_dim=16)
+    with pytest.raises(DataError, match="does not fit this backbone"):
+        train_backbone(other, data, SETTINGS, checkpoint, key="k", quiet=True)
+    with pytest.raises(DataError, match="belongs to other settings"):
+        train_backbone(tiny_model(), data, SETTINGS, checkpoint, key="other", quiet=True)
