@@ -44,6 +44,7 @@ class EfficientNetLite0(Backbone):
     """
 
     test_time_options = ("mc_samples",)
+    rebuild_overrides = {"pretrained": False}
 
     def __init__(
         self,

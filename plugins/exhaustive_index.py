@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from relocfw.errors import DataError
 from relocfw.interfaces import SimilarityIndex
@@ -16,6 +17,13 @@ class ExhaustiveIndex(SimilarityIndex):
         features = check_features(features)
         self.zscore = ZScore().fit(features)
         self.points = self.zscore(features)
+
+    def state(self) -> dict[str, torch.Tensor]:
+        return {**self.zscore.state(), "points": torch.from_numpy(self.points)}
+
+    def load_state(self, state: dict[str, torch.Tensor]) -> None:
+        self.zscore = ZScore().load_state(state)
+        self.points = state["points"].double().numpy()
 
     def neighbours(self, features: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """[n, k] distances to and indices of the nearest training descriptors.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 from sklearn.cluster import KMeans
 
 from relocfw.errors import ConfigError, DataError
@@ -39,6 +40,13 @@ class KMeansIndex(SimilarityIndex):
         kmeans = KMeans(n_clusters=self.k, n_init=self.n_init, random_state=self.seed)
         kmeans.fit(self.zscore(features))
         self.centres = kmeans.cluster_centers_
+
+    def state(self) -> dict[str, torch.Tensor]:
+        return {**self.zscore.state(), "centres": torch.from_numpy(self.centres)}
+
+    def load_state(self, state: dict[str, torch.Tensor]) -> None:
+        self.zscore = ZScore().load_state(state)
+        self.centres = state["centres"].double().numpy()
 
     def assign(self, features: np.ndarray) -> np.ndarray:
         """Cluster of each descriptor (for plots of the map)."""

@@ -58,6 +58,7 @@ class PoseNet(Backbone):
     """
 
     test_time_options = ("mc_samples",)
+    rebuild_overrides = {"weights": None}
 
     def __init__(
         self,

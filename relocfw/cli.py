@@ -17,15 +17,17 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from relocfw import jobs
+from relocfw import __version__, jobs
 from relocfw.compare_job import MapView, write_comparison
 from relocfw.errors import ConfigError, RelocfwError
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
+from relocfw.localize_job import find_images, localize_images
+from relocfw.model_file import save_model
 from relocfw.options import integer_at_least
 from relocfw.pipeline import Relocalizer, check_retrieval
 from relocfw.training import TrainSettings
 
-TASKS = ("relocalize", "train", "compare")
+TASKS = ("relocalize", "train", "compare", "localize")
 INTERFACES = {"backbone": Backbone, "index": SimilarityIndex, "crop": CropSearch}
 
 
@@ -82,6 +84,7 @@ class Method:
     retrieval_k: int
     settings: TrainSettings
     identity: dict[str, Any]
+    options: dict[str, dict[str, Any]]
 
     def relocalizer(self, device: torch.device, batch_size: int) -> Relocalizer:
         return Relocalizer(
@@ -111,15 +114,18 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     index = build(cfg, "index", choices["index"])
     crop = build(cfg, "crop", choices["crop"])
     check_retrieval(index, retrieval_k)
-    backbone_settings = OmegaConf.to_container(cfg.backbone, resolve=True)
-    identity = {
-        "dataset": {
+    options = {
+        group: {
             k: v
-            for k, v in OmegaConf.to_container(cfg.dataset, resolve=True).items()
-            if k not in ("cache_dir", "quiet")
-        },
+            for k, v in OmegaConf.to_container(cfg[group], resolve=True).items()
+            if k != "_target_"
+        }
+        for group in ("backbone", "index", "crop")
+    }
+    identity = {
+        "dataset": dataset_settings(cfg),
         "backbone": {
-            k: v for k, v in backbone_settings.items() if k not in backbone.test_time_options
+            k: v for k, v in options["backbone"].items() if k not in backbone.test_time_options
         },
     }
     return Method(
@@ -130,7 +136,14 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
         retrieval_k,
         settings,
         identity,
+        options,
     )
+
+
+def dataset_settings(cfg: DictConfig) -> dict[str, Any]:
+    """What identifies the data: the dataset options without where caches live."""
+    values = OmegaConf.to_container(cfg.dataset, resolve=True)
+    return {k: v for k, v in values.items() if k not in ("cache_dir", "quiet")}
 
 
 def check_common(cfg: DictConfig) -> torch.device:
@@ -143,8 +156,8 @@ def check_common(cfg: DictConfig) -> torch.device:
     return pick_device(cfg.device)
 
 
-def prepare_model(cfg: DictConfig, method: Method, train: tuple, device: torch.device) -> None:
-    checkpoint, reused = jobs.train_or_reuse(
+def prepare_model(cfg: DictConfig, method: Method, train: tuple, device: torch.device) -> Path:
+    checkpoint, training = jobs.train_or_reuse(
         method.backbone,
         *train,
         method.settings,
@@ -153,7 +166,22 @@ def prepare_model(cfg: DictConfig, method: Method, train: tuple, device: torch.d
         device,
         bool(cfg.quiet),
     )
-    print(f"model: {checkpoint} ({'reused' if reused else 'trained'})")
+    if training.reused:
+        how = "reused"
+    elif training.resumed_from:
+        how = f"trained, resumed from step {training.resumed_from}"
+    else:
+        how = "trained"
+    print(f"model: {checkpoint} ({how})")
+    return checkpoint
+
+
+def run_localize(cfg: DictConfig, device: torch.device) -> None:
+    if not cfg.model:
+        raise ConfigError("model is not set: pass model=FILE (a model.relocfw from a run)")
+    relocalizer = Relocalizer.load(Path(cfg.model), device, int(cfg.query_batch_size))
+    images = find_images(str(cfg.images or ""))
+    localize_images(relocalizer, images, Path(HydraConfig.get().runtime.output_dir), cfg.quiet)
 
 
 def run(cfg: DictConfig) -> None:
@@ -161,27 +189,44 @@ def run(cfg: DictConfig) -> None:
     if cfg.task == "compare":
         run_compare(cfg, device)
         return
+    if cfg.task == "localize":
+        run_localize(cfg, device)
+        return
     choices = HydraConfig.get().runtime.choices
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
     method = build_method(cfg, choices)
     dataset = build(cfg, "dataset", choices["dataset"])
     quiet = bool(cfg.quiet)
     train = jobs.load_split(dataset, "train", quiet)
     if cfg.task == "relocalize":
         method.index.check_map_size(len(train[0]))
-    prepare_model(cfg, method, train, device)
+    checkpoint = prepare_model(cfg, method, train, device)
     if cfg.task == "train":
+        jobs.write_skipped(dataset, run_dir)
         return
     test = jobs.load_split(dataset, "test", quiet)
+    jobs.write_skipped(dataset, run_dir)
+    relocalizer = method.relocalizer(device, int(cfg.query_batch_size))
     jobs.relocalize(
-        method.relocalizer(device, int(cfg.query_batch_size)),
+        relocalizer,
         method.label,
         train,
         test,
-        Path(HydraConfig.get().runtime.output_dir),
+        run_dir,
         baselines=list(cfg.baselines),
         centre_label=f"{choices['backbone']} (centre crop)",
         quiet=quiet,
     )
+    metadata = {
+        "method": method.label,
+        "dataset": choices["dataset"],
+        "dataset_settings": dataset_settings(cfg),
+        "map_images": len(train[0]),
+        "checkpoint": str(checkpoint),
+        "relocfw_version": __version__,
+    }
+    model = save_model(run_dir / "model.relocfw", relocalizer, method.options, metadata)
+    print(f"model file: {model}  (relocfw task=localize model={model} images=...)")
 
 
 def compose_method(overrides: list[str], name: str) -> tuple[DictConfig, Mapping[str, str]]:
@@ -217,6 +262,7 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
         label = scene or first_choices["dataset"]
         train = jobs.load_split(dataset, "train", quiet)
         test = jobs.load_split(dataset, "test", quiet)
+        jobs.write_skipped(dataset, Path(HydraConfig.get().runtime.output_dir))
         results[label], training[label], maps[label] = {}, train[0], None
         for name in methods:
             method_cfg, choices = plans[scene, name]

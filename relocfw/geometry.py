@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Sequence
+
 import numpy as np
 
 from relocfw.errors import DataError
@@ -113,3 +116,31 @@ def mean_quaternion(quaternions: np.ndarray, weights: np.ndarray | None = None) 
     _, vectors = np.linalg.eigh((q * w[:, None]).T @ q)
     mean = vectors[:, -1]
     return mean if mean[0] >= 0 else -mean
+
+
+QUATERNION_TOLERANCE = 1e-3  # |1 - |q|| above this is reported, not silently fixed
+QUATERNION_MINIMUM = 1e-6  # a norm this small has no direction to normalise to
+
+
+def checked_quaternion(values: Sequence[float], source: str) -> np.ndarray:
+    """A unit quaternion from file values, following one documented rule.
+
+    Non-finite values and near-zero norms are refused; a norm off by more than
+    QUATERNION_TOLERANCE is normalised with a warning naming `source`; smaller
+    rounding is normalised silently.
+    """
+    q = np.asarray(values, dtype=np.float64)
+    if q.shape != (4,) or not np.all(np.isfinite(q)):
+        raise DataError(f"{source}: quaternion must be 4 finite numbers, got {list(values)}")
+    norm = float(np.linalg.norm(q))
+    if norm < QUATERNION_MINIMUM:
+        raise DataError(f"{source}: quaternion has (near) zero norm {norm:.3g}")
+    if abs(norm - 1.0) > QUATERNION_TOLERANCE:
+        warnings.warn(f"{source}: quaternion norm {norm:.6g}, normalised", stacklevel=2)
+    return q / norm
+
+
+def conjugate(quaternion: np.ndarray) -> np.ndarray:
+    """The inverse rotation of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = quaternion
+    return np.array([w, -x, -y, -z])

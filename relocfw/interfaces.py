@@ -31,6 +31,9 @@ class Backbone(torch.nn.Module, ABC):
     # Constructor options that only change inference (e.g. Monte Carlo samples): they
     # are left out of the checkpoint key, so such variants share one trained model.
     test_time_options: tuple[str, ...] = ()
+    # Options replaced when a saved model is rebuilt: its state already holds the
+    # weights, so e.g. an ImageNet weights file is not needed (or read) again.
+    rebuild_overrides: dict[str, object] = {}
 
     def __init__(self) -> None:
         super().__init__()
@@ -61,6 +64,14 @@ class SimilarityIndex(ABC):
     @abstractmethod
     def distance(self, features: np.ndarray) -> np.ndarray:
         """[n] distance of each of [n, D] descriptors to the map; lower = more similar."""
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The fitted map as tensors, for model files; optional for plugins."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be saved in a model file")
+
+    def load_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore what `state` returned."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be loaded from a model file")
 
     def check_map_size(self, count: int) -> None:  # noqa: B027 - optional hook, no-op default
         """Raise ConfigError if a map of `count` descriptors cannot be built.

@@ -11,7 +11,8 @@ import numpy as np
 import torch
 
 from relocfw.checkpoints import CHECKPOINT_FORMAT, settings_key, write_text_atomic
-from relocfw.data.frames import Frame, mean_pose, read_images
+from relocfw.data.frames import Frame, mean_pose, read_good_images
+from relocfw.data.on_error import OnError
 from relocfw.errors import DataError
 from relocfw.evaluation import (
     MethodResult,
@@ -24,7 +25,7 @@ from relocfw.interfaces import Backbone
 from relocfw.pipeline import Relocalizer
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.report import format_table
-from relocfw.training import TrainingImages, TrainSettings, train_backbone
+from relocfw.training import TrainingImages, TrainingRun, TrainSettings, train_backbone
 
 BASELINES = ("mean_pose", "posenet")
 
@@ -34,10 +35,22 @@ class Dataset(Protocol):
 
 
 def load_split(dataset: Dataset, split: str, quiet: bool) -> tuple[list[Frame], list[np.ndarray]]:
+    """Frames and decoded images of a split; bad ones follow the dataset's on_error."""
     frames = dataset.frames(split)
+    on_error = getattr(dataset, "on_error", None) or OnError()
+    frames, images = read_good_images(frames, on_error, f"loading {split} images", quiet)
     if not frames:
         raise DataError(f"the {split} split is empty")
-    return frames, read_images(frames, label=f"loading {split} images", quiet=quiet)
+    return frames, images
+
+
+def write_skipped(dataset: Dataset, run_dir: Path) -> None:
+    """List what on_error=skip left out, so nothing is dropped silently."""
+    on_error = getattr(dataset, "on_error", None)
+    if on_error is not None and on_error.skipped:
+        path = Path(run_dir) / "skipped.txt"
+        write_text_atomic("\n".join(on_error.skipped) + "\n", path)
+        print(f"skipped {len(on_error.skipped)} bad entries (dataset.on_error=skip): {path}")
 
 
 def frames_fingerprint(frames: Sequence[Frame]) -> str:
@@ -58,14 +71,14 @@ def train_or_reuse(
     cache_dir: Path,
     device: torch.device,
     quiet: bool,
-) -> tuple[Path, bool]:
+) -> tuple[Path, TrainingRun]:
     """Train the backbone, or load the checkpoint of the same model trained before.
 
     The checkpoint is named by a hash of the dataset and backbone settings, the
     training settings and the training frames themselves.
 
     Returns:
-        The checkpoint path, and whether a finished model was reused.
+        The checkpoint path, and how training went (reused, resumed or fresh).
     """
     key = settings_key(
         {
@@ -78,7 +91,7 @@ def train_or_reuse(
     checkpoint = Path(cache_dir).expanduser() / "checkpoints" / f"{key}.pt"
     data = TrainingImages(images, [f.pose for f in frames], backbone.input_size)
     run = train_backbone(backbone, data, settings, checkpoint, key, device, quiet)
-    return checkpoint, run.reused
+    return checkpoint, run
 
 
 def run_method(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -77,6 +78,16 @@ class Relocalizer:
         self.retrieval_k = int(retrieval_k)
         check_retrieval(index, self.retrieval_k)
         self.map_poses: list[Pose] = []
+        self.metadata: dict = {}  # what a model file says about the data it was built on
+
+    @classmethod
+    def load(
+        cls, path: str | Path, device: str | torch.device = "cpu", batch_size: int = 64
+    ) -> Relocalizer:
+        """A fitted Relocalizer from a model file written by `relocfw task=relocalize`."""
+        from relocfw.model_file import load_model  # the file format builds on this class
+
+        return load_model(Path(path), device, batch_size)
 
     @torch.inference_mode()
     def _forward(self, inputs: torch.Tensor) -> NetworkAnswers:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from relocfw.errors import DataError
 
@@ -19,6 +20,14 @@ class ZScore:
         self.mean = features.mean(axis=0)
         std = features.std(axis=0)
         self.std = np.where(std > 1e-12, std, 1.0)
+        return self
+
+    def state(self) -> dict[str, torch.Tensor]:
+        return {"mean": torch.from_numpy(self.mean), "std": torch.from_numpy(self.std)}
+
+    def load_state(self, state: dict[str, torch.Tensor]) -> ZScore:
+        self.mean = state["mean"].double().numpy()
+        self.std = state["std"].double().numpy()
         return self
 
     def __call__(self, features: np.ndarray) -> np.ndarray:

@@ -88,6 +88,7 @@ class TrainingRun:
 
     losses: list[float]
     reused: bool
+    resumed_from: int = 0  # the step an interrupted run was continued from, 0 if none
 
 
 class TrainingImages:
@@ -181,7 +182,7 @@ def train_backbone(
     weighting = make_weighting(settings).to(device)
     optimizer = make_optimizer([backbone, weighting], settings)
     losses: list[float] = []
-    step = 0
+    step = resumed_from = 0
     if checkpoint is not None and Path(checkpoint).is_file():
         state = load_checkpoint(checkpoint)
         if state.get("key") != key:
@@ -200,6 +201,7 @@ def train_backbone(
         generator.set_state(state["generator"])
         torch.set_rng_state(state["torch_rng"])  # dropout masks continue as they would have
         step, losses = state["iteration"], list(state["losses"])
+        resumed_from = step
 
     def save(complete: bool) -> None:
         if checkpoint is not None:
@@ -252,4 +254,4 @@ def train_backbone(
     progress.close()
     backbone.eval()
     save(complete=True)
-    return TrainingRun(losses, reused=False)
+    return TrainingRun(losses, reused=False, resumed_from=resumed_from)

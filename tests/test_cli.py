@@ -14,6 +14,7 @@ from tests.conftest import TINY_MODEL, TINY_OVERRIDES
 
 
 def relocfw(args, tmp_path, cache=None):
+    """Run the CLI in a subprocess, as a user would."""
     env = {**os.environ, "RELOCFW_CACHE": str(cache or tmp_path / "cache")}
     return subprocess.run(
         [sys.executable, "-m", "relocfw", *args],

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from relocfw.data.on_error import OnError
+from relocfw.errors import DataError
 from relocfw.geometry import mean_quaternion
 from relocfw.imaging import read_rgb
 from relocfw.progress import Progress
@@ -41,11 +43,33 @@ def read_images(
     frames: Sequence[Frame], label: str = "loading images", quiet: bool = False, threads: int = 4
 ) -> list[np.ndarray]:
     """Decode all frames' images; OpenCV releases the GIL, so threads decode in parallel."""
+    return read_good_images(frames, OnError(), label, quiet, threads)[1]
+
+
+def read_good_images(
+    frames: Sequence[Frame],
+    on_error: OnError,
+    label: str = "loading images",
+    quiet: bool = False,
+    threads: int = 4,
+) -> tuple[list[Frame], list[np.ndarray]]:
+    """Frames whose image decodes, with the images; the others go to `on_error`."""
+
+    def attempt(frame: Frame) -> np.ndarray | DataError:
+        try:
+            return read_rgb(frame.image_path)
+        except DataError as error:
+            return error
+
     progress = Progress(len(frames), label, quiet=quiet)
-    images = []
+    kept, images = [], []
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        for image in pool.map(read_rgb, [f.image_path for f in frames]):
-            images.append(image)
+        for frame, image in zip(frames, pool.map(attempt, frames), strict=True):
             progress.advance()
+            if isinstance(image, DataError):
+                on_error.handle(image)
+                continue
+            kept.append(frame)
+            images.append(image)
     progress.close()
-    return images
+    return kept, images

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from relocfw.data.frames import Frame
+from relocfw.data.on_error import OnError
 from relocfw.errors import ConfigError, DataError
 from relocfw.geometry import pose_from_matrix
 
@@ -63,14 +64,18 @@ def read_pose_file(path: Path) -> np.ndarray:
     return np.array(values).reshape(4, 4)
 
 
-def load_sevenscenes(root: str | Path, scene: str | None, split: str) -> list[Frame]:
+def load_sevenscenes(
+    root: str | Path, scene: str | None, split: str, on_error: OnError | None = None
+) -> list[Frame]:
     """Frames of one split, in sequence then frame order.
 
     Args:
         root: dataset folder (the one holding scene folders), or a scene folder.
         scene: scene name such as "chess"; None when `root` is the scene folder.
         split: "train" or "test".
+        on_error: what to do with a bad pose file (default: fail).
     """
+    on_error = on_error or OnError()
     if split not in SPLIT_FILES:
         raise ConfigError(f"split must be 'train' or 'test', got {split!r}")
     folder = scene_folder(root, scene)
@@ -87,7 +92,11 @@ def load_sevenscenes(root: str | Path, scene: str | None, split: str) -> list[Fr
         for image in images:
             stem = image.name.split(".")[0]
             pose_path = seq_dir / f"{stem}.pose.txt"
-            pose = pose_from_matrix(read_pose_file(pose_path), source=str(pose_path))
+            try:
+                pose = pose_from_matrix(read_pose_file(pose_path), source=str(pose_path))
+            except DataError as error:
+                on_error.handle(error)
+                continue
             frames.append(Frame(f"{seq_dir.name}/{stem}", image, pose))
     return frames
 
@@ -98,10 +107,14 @@ class SevenScenes:
     Args:
         root: the folder holding scene folders (or the scene folder, with scene=None).
         scene: scene name, e.g. "chess".
+        on_error: "fail" or "skip" (bad files left out and listed).
     """
 
-    def __init__(self, root: str | None = None, scene: str | None = None) -> None:
+    def __init__(
+        self, root: str | None = None, scene: str | None = None, on_error: str = "fail"
+    ) -> None:
         self.folder = scene_folder(root, scene)
+        self.on_error = OnError(on_error)
 
     def frames(self, split: str) -> list[Frame]:
-        return load_sevenscenes(self.folder, None, split)
+        return load_sevenscenes(self.folder, None, split, self.on_error)

@@ -1,0 +1,104 @@
+"""A plain folder: images plus a poses file whose header names the columns.
+
+For poses from COLMAP, a motion-capture system or a robot: one CSV (or whitespace
+separated TXT) per split, e.g.
+
+    image,x,y,z,qw,qx,qy,qz
+    images/0001.png,1.0,2.0,0.5,1,0,0,0
+
+Columns are found by name (any order, case-insensitive): the image column is
+`image`, `file`, `filename` or `path`; positions `x y z` (or `tx ty tz`); the
+camera-to-world rotation `qw qx qy qz`. Image paths are relative to the folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from relocfw.data.frames import Frame
+from relocfw.data.on_error import OnError
+from relocfw.data.text import data_lines, numbers
+from relocfw.errors import ConfigError, DataError
+from relocfw.geometry import checked_quaternion
+from relocfw.values import Pose
+
+COLUMN_NAMES = {
+    "image": ("image", "file", "filename", "path"),
+    "x": ("x", "tx"),
+    "y": ("y", "ty"),
+    "z": ("z", "tz"),
+    "qw": ("qw",),
+    "qx": ("qx",),
+    "qy": ("qy",),
+    "qz": ("qz",),
+}
+
+
+def column_positions(header: list[str], source: str) -> dict[str, int]:
+    """Where each needed column is, by name; a missing one is named in the error."""
+    lowered = [h.strip().lower() for h in header]
+    found = {}
+    for column, aliases in COLUMN_NAMES.items():
+        matches = [i for i, name in enumerate(lowered) if name in aliases]
+        if not matches:
+            raise DataError(
+                f"{source}: header has no {column!r} column (accepted names: "
+                f"{', '.join(aliases)}); found {header}"
+            )
+        found[column] = matches[0]
+    return found
+
+
+def load_pose_table(path: Path, folder: Path, on_error: OnError | None = None) -> list[Frame]:
+    on_error = on_error or OnError()
+    lines = data_lines(path)
+    try:
+        header_source, header = next(lines)
+    except StopIteration:
+        raise DataError(f"{path}: empty poses file") from None
+    columns = column_positions(header, header_source)
+    frames = []
+    for source, fields in lines:
+        try:
+            if len(fields) != len(header):
+                raise DataError(
+                    f"{source}: {len(fields)} values, the header names {len(header)} columns"
+                )
+            picked = [fields[columns[c]] for c in ("x", "y", "z", "qw", "qx", "qy", "qz")]
+            values = numbers(picked, source, 7)
+            pose = Pose(values[:3], checked_quaternion(values[3:], source))
+        except DataError as error:
+            on_error.handle(error)
+            continue
+        image = fields[columns["image"]]
+        frames.append(Frame(str(Path(image).with_suffix("")), folder / image, pose))
+    return frames
+
+
+class PoseFolder:
+    """Images + one poses file per split.
+
+    Args:
+        root: the folder; image paths in the poses files are relative to it.
+        train: poses file of the map images (default train.csv).
+        test: poses file of the query images (default test.csv).
+        on_error: "fail" or "skip" (bad lines left out and listed).
+    """
+
+    def __init__(
+        self,
+        root: str | None = None,
+        train: str = "train.csv",
+        test: str = "test.csv",
+        on_error: str = "fail",
+    ) -> None:
+        if root is None:
+            raise ConfigError("dataset.root is not set: pass dataset.root=DIR")
+        self.root = Path(root).expanduser()
+        if not self.root.is_dir():
+            raise DataError(f"dataset.root: folder not found: {self.root}")
+        self.files = {"train": train, "test": test}
+        self.on_error = OnError(on_error)
+
+    def frames(self, split: str) -> list[Frame]:
+        return load_pose_table(self.root / self.files[split], self.root, self.on_error)

@@ -1,0 +1,95 @@
+"""`relocfw task=localize`: poses of new images from a saved model."""
+
+from __future__ import annotations
+
+import csv
+import glob
+import io
+from pathlib import Path
+
+from relocfw.checkpoints import write_text_atomic
+from relocfw.errors import ConfigError, DataError
+from relocfw.imaging import read_rgb
+from relocfw.pipeline import Relocalizer
+from relocfw.progress import Progress
+from relocfw.values import Localization
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+COLUMNS = [
+    "image",
+    "timestamp",
+    "x",
+    "y",
+    "z",
+    "qw",
+    "qx",
+    "qy",
+    "qz",
+    "crop_x",
+    "crop_y",
+    "crop_size",
+    "distance",
+    "network_passes",
+    "seconds",
+    "position_spread_m",
+    "orientation_spread_deg",
+]
+
+
+def find_images(pattern: str) -> list[Path]:
+    """Images named by a file, a folder (every image in it) or a glob pattern."""
+    if not pattern:
+        raise ConfigError("images is not set: pass images=FILE, images=DIR or images='DIR/*.png'")
+    path = Path(pattern).expanduser()
+    if path.is_dir():
+        found = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    elif path.is_file():
+        found = [path]
+    else:
+        found = sorted(Path(p) for p in glob.glob(str(path)))
+    if not found:
+        raise DataError(f"images={pattern}: no image files found")
+    return found
+
+
+def timestamp_of(path: Path, position: int) -> str:
+    """The file name's number when it is one (TUM names images by time), else its index."""
+    try:
+        float(path.stem)
+        return path.stem
+    except ValueError:
+        return str(position)
+
+
+def localize_images(
+    relocalizer: Relocalizer, images: list[Path], run_dir: Path, quiet: bool = False
+) -> list[Localization]:
+    """Localize every image; write poses.txt (TUM format) and localization.csv."""
+    progress = Progress(len(images), "localizing", quiet=quiet)
+    answers = []
+    for path in images:
+        answers.append(relocalizer.localize(read_rgb(path)))
+        progress.advance()
+    progress.close()
+    tum_lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
+    table = io.StringIO()
+    writer = csv.writer(table)
+    writer.writerow(COLUMNS)
+    for position, (path, answer) in enumerate(zip(images, answers, strict=True)):
+        stamp = timestamp_of(path, position)
+        (x, y, z), (qw, qx, qy, qz) = answer.pose.position, answer.pose.quaternion
+        tum_lines.append(" ".join([stamp] + [f"{v:.9f}" for v in (x, y, z, qx, qy, qz, qw)]))
+        writer.writerow(
+            [str(path), stamp]
+            + [f"{v:.9f}" for v in (x, y, z, qw, qx, qy, qz)]
+            + [answer.crop.x, answer.crop.y, answer.crop.size, f"{answer.distance:.6f}"]
+            + [answer.evaluations, f"{answer.seconds:.6f}"]
+            + [f"{answer.position_spread:.6f}", f"{answer.orientation_spread_deg:.4f}"]
+        )
+    write_text_atomic("\n".join(tum_lines) + "\n", Path(run_dir) / "poses.txt")
+    write_text_atomic(table.getvalue(), Path(run_dir) / "localization.csv")
+    print(
+        f"{len(answers)} images localized: {Path(run_dir) / 'poses.txt'}, "
+        f"{Path(run_dir) / 'localization.csv'}"
+    )
+    return answers
