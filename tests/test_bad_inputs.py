@@ -268,3 +268,15 @@ def test_killed_training_resumes(tmp_path):
     assert "resumed from step" in again.stdout
     step = int(again.stdout.split("resumed from step ")[1].split(")")[0])
     assert 10 <= step < 400 and step % 10 == 0
+
+
+def test_library_load_and_localize(trained_run):
+    from relocfw import Relocalizer
+    from relocfw.imaging import read_rgb
+
+    home, run_dir = trained_run
+    relocalizer = Relocalizer.load(run_dir / "model.relocfw")
+    assert relocalizer.metadata["map_images"] == 16
+    scene = next((home / "cache" / "scenes").iterdir())
+    answer = relocalizer.localize(read_rgb(scene / "seq-03" / "frame-000000.color.png"))
+    assert answer.pose.position.shape == (3,) and answer.evaluations >= 1
