@@ -20,32 +20,48 @@ from omegaconf.errors import OmegaConfBaseException
 from relocfw import __version__, jobs
 from relocfw.compare_job import MapView, write_comparison
 from relocfw.errors import ConfigError, RelocfwError
+from relocfw.hydra_plugins import install as install_plugin_discovery
+from relocfw.hydra_plugins import options_help
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.localize_job import find_images, localize_images
 from relocfw.model_file import save_model
 from relocfw.options import integer_at_least
 from relocfw.pipeline import Relocalizer, check_retrieval
+from relocfw.plugin_discovery import conflicts, discover_options, source_of
 from relocfw.training import TrainSettings
 
-TASKS = ("relocalize", "train", "compare", "localize")
+TASKS = ("relocalize", "train", "compare", "localize", "plugins")
 INTERFACES = {"backbone": Backbone, "index": SimilarityIndex, "crop": CropSearch}
 
 
 def build(cfg: DictConfig, group: str, choice: str) -> Any:
-    """Instantiate the option chosen for `group`, turning failures into one message."""
+    """Instantiate the option chosen for `group`, turning failures into one message.
+
+    A plugin's failure names its distribution; an object that is not the group's
+    interface names the methods it lacks, before any training starts.
+    """
+    source = source_of(group, choice)
+    where = f"{group}={choice}"
+    if source is not None and source.distribution != "relocfw":
+        where += f" (from {source.distribution})"
     try:
         obj = instantiate(cfg[group])
     except InstantiationException as error:
         cause = error.__cause__ or error
         if isinstance(cause, RelocfwError):
-            raise ConfigError(f"{group}={choice}: {cause}") from error
-        raise ConfigError(f"{group}={choice}: {type(cause).__name__}: {cause}") from error
+            raise ConfigError(f"{where}: {cause}") from error
+        raise ConfigError(f"{where}: {type(cause).__name__}: {cause}") from error
     except OmegaConfBaseException as error:
-        raise ConfigError(f"{group}={choice}: {error}") from error
+        raise ConfigError(f"{where}: {error}") from error
     expected = INTERFACES.get(group)
     if expected is not None and not isinstance(obj, expected):
+        missing = sorted(
+            name for name in expected.__abstractmethods__ if not callable(getattr(obj, name, None))
+        )
+        lacks = f"; it lacks {', '.join(missing)}" if missing else ""
         raise ConfigError(
-            f"{group}={choice}: {type(obj).__qualname__} does not implement {expected.__name__}"
+            f"{where}: {type(obj).__module__}.{type(obj).__qualname__} does not implement "
+            f"relocfw.{expected.__name__} (subclass it){lacks}"
         )
     return obj
 
@@ -192,6 +208,9 @@ def run(cfg: DictConfig) -> None:
     if cfg.task == "localize":
         run_localize(cfg, device)
         return
+    if cfg.task == "plugins":
+        print(options_help())
+        return
     choices = HydraConfig.get().runtime.choices
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     method = build_method(cfg, choices)
@@ -297,6 +316,10 @@ def hydra_main(cfg: DictConfig) -> None:
 
 def main() -> None:
     """Console-script entry point."""
+    install_plugin_discovery()
+    clashes = conflicts(discover_options())
+    for line in clashes:
+        print(f"warning: {line}", file=sys.stderr)
     hydra_main()
 
 

@@ -3,6 +3,7 @@
 import csv
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -135,11 +136,12 @@ def test_corrupt_image_names_the_file(tmp_path, cache, tiny_scene):
     assert f"cannot decode image (corrupt or not an image): {bad}" in result.stderr
 
 
-def test_help_lists_the_options(tmp_path):
+def test_help_lists_the_options_with_their_package(tmp_path):
     result = relocfw(["--help"], tmp_path)
     assert result.returncode == 0
-    for option in ("crop: centre, ga, sweep", "index: exhaustive, kmeans"):
-        assert option in result.stdout
+    assert "crop (CropSearch):" in result.stdout and "index (SimilarityIndex):" in result.stdout
+    for option in ("centre", "ga", "sweep", "exhaustive", "kmeans", "posenet", "tum"):
+        assert re.search(rf"\n  {option}\s+\[relocfw\] ", result.stdout), option
 
 
 def test_console_script_is_installed():

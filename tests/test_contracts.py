@@ -1,0 +1,52 @@
+"""relocfw's own contract checks, run on every built-in (and the example plugin)."""
+
+import pytest
+
+from relocfw.contracts import check_backbone, check_crop_search, check_similarity_index
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.plugins.exhaustive_index import ExhaustiveIndex
+from relocfw.plugins.ga_crop import GeneticCropSearch
+from relocfw.plugins.kmeans_index import KMeansIndex
+from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.sweep_crop import SweepCrop
+
+
+@pytest.mark.parametrize(
+    "search", [CentreCrop(), SweepCrop(), SweepCrop(stride=7), GeneticCropSearch()]
+)
+def test_builtin_crop_searches(search):
+    check_crop_search(search)
+
+
+@pytest.mark.parametrize("make", [ExhaustiveIndex, lambda: KMeansIndex(k=5)])
+def test_builtin_indexes(make):
+    check_similarity_index(make)
+
+
+def test_posenet_backbone():
+    check_backbone(PoseNet(input_size=32, width=0.125, feature_dim=16))
+    check_backbone(PoseNet(input_size=32, width=0.125, feature_dim=16, mc_samples=4))
+
+
+def test_efficientnet_backbone():
+    pytest.importorskip("efficientnet_lite_pytorch")
+    from relocfw.plugins.efficientnet_lite import EfficientNetLite0
+
+    check_backbone(EfficientNetLite0(input_size=32, feature_dim=16, pretrained=False))
+
+
+def test_example_plugin():
+    plugin = pytest.importorskip("relocfw_coarse_to_fine.search")
+    check_crop_search(plugin.CoarseToFineCrop())
+
+
+def test_a_broken_search_is_caught():
+    class Repeats(CentreCrop):
+        def search(self, width, height, distance):
+            crop = super().search(width, height, distance)
+            distance([crop])
+            distance([crop])
+            return crop
+
+    with pytest.raises(AssertionError, match="scored twice"):
+        check_crop_search(Repeats())
