@@ -59,6 +59,17 @@ def read_torch_file(path: Path, what: str) -> Any:
         raise DataError(f"{what}: cannot read {path}: {error}") from error
 
 
+def remove_stale_temporaries(path: Path) -> None:
+    """Delete temporary files a killed writer of `path` left behind.
+
+    A SIGKILL during `save_atomic` cannot clean up; the checkpoint itself is intact
+    (it is only ever replaced whole), but the temporary would pile up.
+    """
+    path = Path(path)
+    for stale in path.parent.glob(f".{path.name}.*"):
+        stale.unlink(missing_ok=True)
+
+
 def load_checkpoint(path: Path) -> dict[str, Any]:
     """A checkpoint written by `save_atomic`, or a DataError naming the file."""
     payload = read_torch_file(path, "checkpoint")

@@ -81,25 +81,7 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
     }
 
 
-CSV_COLUMNS = (
-    "method",
-    "frame",
-    "true_x",
-    "true_y",
-    "true_z",
-    "true_qw",
-    "true_qx",
-    "true_qy",
-    "true_qz",
-    "est_x",
-    "est_y",
-    "est_z",
-    "est_qw",
-    "est_qx",
-    "est_qy",
-    "est_qz",
-    "position_error_m",
-    "orientation_error_deg",
+ANSWER_COLUMNS = (
     "crop_x",
     "crop_y",
     "crop_size",
@@ -109,6 +91,30 @@ CSV_COLUMNS = (
     "position_spread_m",
     "orientation_spread_deg",
 )
+POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+CSV_COLUMNS = (
+    "method",
+    "frame",
+    *(f"true_{c}" for c in POSE_COLUMNS),
+    *(f"est_{c}" for c in POSE_COLUMNS),
+    "position_error_m",
+    "orientation_error_deg",
+    *ANSWER_COLUMNS,
+)
+
+
+def answer_cells(answer: Localization) -> list[str | int]:
+    """How the answer was found, in ANSWER_COLUMNS order: crop, similarity, cost, spread."""
+    return [
+        answer.crop.x,
+        answer.crop.y,
+        answer.crop.size,
+        f"{answer.distance:.6f}",
+        answer.evaluations,
+        f"{answer.seconds:.6f}",
+        f"{answer.position_spread:.6f}",
+        f"{answer.orientation_spread_deg:.4f}",
+    ]
 
 
 def per_image_csv(results: Sequence[MethodResult]) -> str:
@@ -130,8 +136,6 @@ def per_image_csv(results: Sequence[MethodResult]) -> str:
                 + [f"{v:.6f}" for v in (*frame.pose.position, *frame.pose.quaternion)]
                 + [f"{v:.6f}" for v in (*answer.pose.position, *answer.pose.quaternion)]
                 + [f"{pos_err:.6f}", f"{ori_err:.4f}"]
-                + [answer.crop.x, answer.crop.y, answer.crop.size]
-                + [f"{answer.distance:.6f}", answer.evaluations, f"{answer.seconds:.6f}"]
-                + [f"{answer.position_spread:.6f}", f"{answer.orientation_spread_deg:.4f}"]
+                + answer_cells(answer)
             )
     return stream.getvalue()

@@ -9,31 +9,14 @@ from pathlib import Path
 
 from relocfw.checkpoints import write_text_atomic
 from relocfw.errors import ConfigError, DataError
+from relocfw.evaluation import ANSWER_COLUMNS, POSE_COLUMNS, answer_cells
 from relocfw.imaging import read_rgb
 from relocfw.pipeline import Relocalizer
 from relocfw.progress import Progress
 from relocfw.values import Localization
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-COLUMNS = [
-    "image",
-    "timestamp",
-    "x",
-    "y",
-    "z",
-    "qw",
-    "qx",
-    "qy",
-    "qz",
-    "crop_x",
-    "crop_y",
-    "crop_size",
-    "distance",
-    "network_passes",
-    "seconds",
-    "position_spread_m",
-    "orientation_spread_deg",
-]
+COLUMNS = ("image", "timestamp", *POSE_COLUMNS, *ANSWER_COLUMNS)
 
 
 def find_images(pattern: str) -> list[Path]:
@@ -82,9 +65,7 @@ def localize_images(
         writer.writerow(
             [str(path), stamp]
             + [f"{v:.9f}" for v in (x, y, z, qw, qx, qy, qz)]
-            + [answer.crop.x, answer.crop.y, answer.crop.size, f"{answer.distance:.6f}"]
-            + [answer.evaluations, f"{answer.seconds:.6f}"]
-            + [f"{answer.position_spread:.6f}", f"{answer.orientation_spread_deg:.4f}"]
+            + answer_cells(answer)
         )
     write_text_atomic("\n".join(tum_lines) + "\n", Path(run_dir) / "poses.txt")
     write_text_atomic(table.getvalue(), Path(run_dir) / "localization.csv")

@@ -10,7 +10,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from relocfw.checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_atomic
+from relocfw.checkpoints import (
+    CHECKPOINT_FORMAT,
+    load_checkpoint,
+    remove_stale_temporaries,
+    save_atomic,
+)
 from relocfw.errors import ConfigError, DataError
 from relocfw.imaging import Strip, to_network_input
 from relocfw.interfaces import Backbone
@@ -183,6 +188,8 @@ def train_backbone(
     optimizer = make_optimizer([backbone, weighting], settings)
     losses: list[float] = []
     step = resumed_from = 0
+    if checkpoint is not None:
+        remove_stale_temporaries(checkpoint)
     if checkpoint is not None and Path(checkpoint).is_file():
         state = load_checkpoint(checkpoint)
         if state.get("key") != key:

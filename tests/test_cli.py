@@ -14,9 +14,9 @@ import pytest
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
 
 
-def relocfw(args, tmp_path, cache=None):
+def relocfw(args, tmp_path, cache=None, **env_extra):
     """Run the CLI in a subprocess, as a user would."""
-    env = {**os.environ, "RELOCFW_CACHE": str(cache or tmp_path / "cache")}
+    env = {**os.environ, "RELOCFW_CACHE": str(cache or tmp_path / "cache"), **env_extra}
     return subprocess.run(
         [sys.executable, "-m", "relocfw", *args],
         cwd=tmp_path,

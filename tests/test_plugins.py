@@ -1,6 +1,5 @@
 """Third-party plugins, seen from outside relocfw: installed, listed, chosen, broken."""
 
-import os
 import re
 import subprocess
 import sys
@@ -17,15 +16,7 @@ GUIDE = Path(__file__).resolve().parents[1] / "docs" / "plugins.md"
 
 def with_path(args, tmp_path, site):
     """Run the CLI with `site` on PYTHONPATH: the plugin is installed there."""
-    env = {**os.environ, "RELOCFW_CACHE": str(tmp_path / "cache"), "PYTHONPATH": str(site)}
-    return subprocess.run(
-        [sys.executable, "-m", "relocfw", *args],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    return relocfw(args, tmp_path, PYTHONPATH=str(site))
 
 
 def guide_files():

@@ -154,3 +154,11 @@ def test_checkpoint_of_another_architecture_is_refused_clearly(data, tmp_path):
         train_backbone(other, data, SETTINGS, checkpoint, key="k", quiet=True)
     with pytest.raises(DataError, match="belongs to other settings"):
         train_backbone(tiny_model(), data, SETTINGS, checkpoint, key="other", quiet=True)
+
+
+def test_a_killed_writers_temporary_is_cleaned_up(data, tmp_path):
+    checkpoint = tmp_path / "model.pt"
+    stale = tmp_path / ".model.pt.k1ll3d"
+    stale.write_bytes(b"half a checkpoint")
+    train_backbone(tiny_model(), data, SETTINGS, checkpoint, key="k", quiet=True)
+    assert not stale.exists() and load_checkpoint(checkpoint)["complete"]
