@@ -1,0 +1,91 @@
+"""Per-query time and network passes of the crop searches at the paper's geometry.
+
+640 x 480 images (480-pixel crops, 160 offsets), 224-pixel GoogLeNet input. Timing
+does not depend on the weights, so the network is freshly initialised; the map is
+fitted on descriptors of rendered training views. Prints a table, writes JSON.
+
+    .venv/bin/python benchmarks/query_cost.py --queries 10 --out benchmarks/results/query_cost.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from relocfw import Relocalizer
+from relocfw.data.room import Room, RoomRenderer
+from relocfw.data.synthetic import SyntheticSceneSpec, lap_poses, scene_laps
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.plugins.ga_crop import GeneticCropSearch
+from relocfw.plugins.kmeans_index import KMeansIndex
+from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.sweep_crop import SweepCrop
+
+
+def render_views(count: int, lap_index: int, seed: int = 0) -> list[np.ndarray]:
+    room = Room()
+    renderer = RoomRenderer(room, seed=seed)
+    train_laps, test_lap = scene_laps(SyntheticSceneSpec(seed=seed))
+    lap = test_lap if lap_index < 0 else train_laps[lap_index]
+    return [renderer.render(pose, 640, 480) for pose in lap_poses(lap, count, room)]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--queries", type=int, default=10)
+    parser.add_argument("--map-images", type=int, default=60)
+    parser.add_argument("--input-size", type=int, default=224)
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/query_cost.json"))
+    args = parser.parse_args()
+    torch.manual_seed(0)
+    backbone = PoseNet(input_size=args.input_size).eval()
+    queries = render_views(args.queries, -1)
+    map_images = render_views(args.map_images, 0)
+    rows = []
+    for name, crop in (
+        ("centre", CentreCrop()),
+        ("ga", GeneticCropSearch()),
+        ("sweep", SweepCrop()),
+    ):
+        relocalizer = Relocalizer(backbone, KMeansIndex(k=min(40, args.map_images)), crop)
+        relocalizer.fit(map_images)
+        relocalizer.localize(queries[0])  # warm-up: allocator, thread pool
+        start = time.perf_counter()
+        answers = [relocalizer.localize(q) for q in queries]
+        seconds = (time.perf_counter() - start) / len(queries)
+        rows.append(
+            {
+                "search": name,
+                "ms_per_query": 1000 * seconds,
+                "network_passes": float(np.mean([a.evaluations for a in answers])),
+            }
+        )
+    centre = rows[0]["ms_per_query"]
+    for row in rows:
+        row["times_centre"] = row["ms_per_query"] / centre
+    print(f"{'search':<8} {'ms/query':>10} {'passes':>8} {'x centre':>9}")
+    for row in rows:
+        print(
+            f"{row['search']:<8} {row['ms_per_query']:>10.1f} {row['network_passes']:>8.1f} "
+            f"{row['times_centre']:>9.2f}"
+        )
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    report = {
+        "geometry": {"image": [640, 480], "crop": 480, "input": args.input_size},
+        "queries": args.queries,
+        "torch_threads": torch.get_num_threads(),
+        "machine": platform.processor() or platform.machine(),
+        "rows": rows,
+    }
+    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"written: {args.out}")
+
+
+if __name__ == "__main__":
+    main()
