@@ -6,8 +6,10 @@ import hashlib
 import json
 import os
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import torch
 
@@ -24,23 +26,32 @@ def settings_key(settings: dict[str, Any]) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def save_atomic(payload: dict[str, Any], path: Path) -> None:
-    """Write to a temporary file beside `path`, then rename over it.
+@contextmanager
+def atomic_write(path: Path, mode: str = "wb") -> Iterator[IO]:
+    """A stream to a temporary file beside `path`, renamed over it when the block ends.
 
-    A kill mid-write leaves the previous checkpoint intact, never a truncated one.
+    A kill mid-write leaves the previous file intact, never a truncated one; an
+    exception removes the temporary. Every file relocfw writes for the user goes
+    through here: checkpoints, model files, results, figures.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
     try:
-        with os.fdopen(handle, "wb") as stream:
-            torch.save(payload, stream)
+        with os.fdopen(handle, mode, **({} if "b" in mode else {"newline": ""})) as stream:
+            yield stream
             stream.flush()
             os.fsync(stream.fileno())
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
+
+
+def save_atomic(payload: dict[str, Any], path: Path) -> None:
+    """torch.save `payload` to `path` atomically."""
+    with atomic_write(path, "wb") as stream:
+        torch.save(payload, stream)
 
 
 def read_torch_file(path: Path, what: str) -> Any:
@@ -80,13 +91,5 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 
 def write_text_atomic(text: str, path: Path) -> None:
     """Results files get the same all-or-nothing treatment as checkpoints."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(handle, "w", newline="") as stream:
-            stream.write(text)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    with atomic_write(path, "w") as stream:
+        stream.write(text)

@@ -12,18 +12,16 @@ import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
 import numpy as np  # noqa: E402
 from sklearn.manifold import TSNE  # noqa: E402
 
+from relocfw.checkpoints import atomic_write  # noqa: E402
 from relocfw.data.frames import Frame, positions_of  # noqa: E402
 from relocfw.evaluation import MethodResult  # noqa: E402
 
 
 def save(figure: plt.Figure, path: Path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp.png")
-    figure.savefig(temporary, dpi=110, bbox_inches="tight")
+    with atomic_write(path, "wb") as stream:
+        figure.savefig(stream, format="png", dpi=110, bbox_inches="tight")
     plt.close(figure)
-    temporary.replace(path)
-    return path
+    return Path(path)
 
 
 HISTOGRAM_KINDS = {

@@ -10,7 +10,9 @@ plugin can only fail when it is chosen.
 from __future__ import annotations
 
 import importlib.util
+from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cache
 from importlib import metadata
 from importlib.resources import files
 from pathlib import Path
@@ -77,8 +79,13 @@ def first_comment(path: Path) -> str:
     return ""
 
 
-def discover_options() -> list[Option]:
-    """Every option of every group, in search-path order (first one wins)."""
+@cache
+def discover_options() -> tuple[Option, ...]:
+    """Every option of every group, in search-path order (first one wins).
+
+    Cached: installed packages do not change while relocfw runs, and the CLI asks
+    for every plugin it builds.
+    """
     options = []
     for source in config_sources():
         folder = package_folder(source.package)
@@ -87,10 +94,10 @@ def discover_options() -> list[Option]:
         for group in GROUPS:
             for path in sorted((folder / group).glob("*.yaml")):
                 options.append(Option(group, path.stem, source, first_comment(path)))
-    return options
+    return tuple(options)
 
 
-def conflicts(options: list[Option]) -> list[str]:
+def conflicts(options: Sequence[Option]) -> list[str]:
     """One line for each option name offered by more than one package."""
     seen: dict[tuple[str, str], Option] = {}
     lines = []
@@ -107,7 +114,7 @@ def conflicts(options: list[Option]) -> list[str]:
     return lines
 
 
-def describe_options(options: list[Option]) -> str:
+def describe_options(options: Sequence[Option]) -> str:
     """A listing by group: option, package, interface and description."""
     lines = []
     for group, interface in GROUPS.items():

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -106,15 +107,20 @@ class TrainingImages:
     def __init__(self, images: Sequence[np.ndarray], poses: Sequence[Pose], input_size: int):
         if len(images) == 0:
             raise DataError("the training split is empty")
-        self.strips = [Strip(image, input_size) for image in images]
+        self.images = images
         self.positions = torch.tensor(np.stack([p.position for p in poses]), dtype=torch.float32)
         self.quaternions = torch.tensor(
             np.stack([p.quaternion for p in poses]), dtype=torch.float32
         )
         self.input_size = input_size
 
+    @cached_property
+    def strips(self) -> list[Strip]:
+        # Built on the first batch, not up front: a reused checkpoint never needs them.
+        return [Strip(image, self.input_size) for image in self.images]
+
     def __len__(self) -> int:
-        return len(self.strips)
+        return len(self.images)
 
     def batch(
         self, indices: torch.Tensor, generator: torch.Generator, random_crops: bool
@@ -223,7 +229,7 @@ def train_backbone(
                 "generator": generator.get_state(),
                 "torch_rng": torch.get_rng_state(),
                 "losses": losses,
-                "settings": {k: v for k, v in asdict(settings).items()},
+                "settings": asdict(settings),
             }
             save_atomic(payload, checkpoint)
 
