@@ -1,8 +1,10 @@
 """Per-query time and network passes of the crop searches at the paper's geometry.
 
-640 x 480 images (480-pixel crops, 160 offsets), 224-pixel GoogLeNet input. Timing
-does not depend on the weights, so the network is freshly initialised; the map is
-fitted on descriptors of rendered training views. Prints a table, writes JSON.
+640 x 480 images (480-pixel crops, 160 offsets), 224-pixel GoogLeNet input, each crop
+search with plain scoring (every candidate through the whole network) and shared
+scoring (one trunk pass over the strip, see relocfw.window_pooling). Timing does not
+depend on the weights, so the network is freshly initialised; the map is fitted on
+descriptors of rendered training views. Prints a table, writes JSON.
 
     .venv/bin/python benchmarks/query_cost.py --queries 10 --out benchmarks/results/query_cost.json
 """
@@ -48,12 +50,15 @@ def main() -> None:
     queries = render_views(args.queries, -1)
     map_images = render_views(args.map_images, 0)
     rows = []
-    for name, crop in (
-        ("centre", CentreCrop()),
-        ("ga", GeneticCropSearch()),
-        ("sweep", SweepCrop()),
+    for name, crop, scoring in (
+        ("centre", CentreCrop(), "plain"),
+        ("ga", GeneticCropSearch(), "plain"),
+        ("sweep", SweepCrop(), "plain"),
+        ("ga", GeneticCropSearch(), "shared"),
+        ("sweep", SweepCrop(), "shared"),
     ):
-        relocalizer = Relocalizer(backbone, KMeansIndex(k=min(40, args.map_images)), crop)
+        index = KMeansIndex(k=min(40, args.map_images))
+        relocalizer = Relocalizer(backbone, index, crop, scoring=scoring)
         relocalizer.fit(map_images)
         relocalizer.localize(queries[0])  # warm-up: allocator, thread pool
         start = time.perf_counter()
@@ -62,18 +67,22 @@ def main() -> None:
         rows.append(
             {
                 "search": name,
+                "scoring": scoring,
                 "ms_per_query": 1000 * seconds,
-                "network_passes": float(np.mean([a.evaluations for a in answers])),
+                "crops_scored": float(np.mean([a.evaluations for a in answers])),
+                "network_passes": float(np.mean([a.network_passes for a in answers])),
             }
         )
     centre = rows[0]["ms_per_query"]
     for row in rows:
         row["times_centre"] = row["ms_per_query"] / centre
-    print(f"{'search':<8} {'ms/query':>10} {'passes':>8} {'x centre':>9}")
+    print(
+        f"{'search':<8} {'scoring':<8} {'ms/query':>9} {'crops':>6} {'passes':>7} {'x centre':>9}"
+    )
     for row in rows:
         print(
-            f"{row['search']:<8} {row['ms_per_query']:>10.1f} {row['network_passes']:>8.1f} "
-            f"{row['times_centre']:>9.2f}"
+            f"{row['search']:<8} {row['scoring']:<8} {row['ms_per_query']:>9.1f} "
+            f"{row['crops_scored']:>6.1f} {row['network_passes']:>7.2f} {row['times_centre']:>9.2f}"
         )
     args.out.parent.mkdir(parents=True, exist_ok=True)
     report = {

@@ -73,7 +73,12 @@ class EfficientNetLite0(Backbone):
         self.head = PoseHead(channels, self.feature_dim, float(dropout))
 
     def forward(self, images: torch.Tensor) -> PoseOutput:
-        # EfficientNet-Lite was trained on pixels scaled to [-1, 1].
-        maps = self.trunk.extract_features(images * 2.0 - 1.0)
-        pooled = torch.flatten(nn.functional.adaptive_avg_pool2d(maps, 1), 1)
+        pooled = torch.flatten(nn.functional.adaptive_avg_pool2d(self.feature_maps(images), 1), 1)
         return self.head(pooled, self.to_world_positions, self.mc_samples)
+
+    def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
+        # EfficientNet-Lite was trained on pixels scaled to [-1, 1].
+        return self.trunk.extract_features(images * 2.0 - 1.0)
+
+    def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
+        return self.head.describe(pooled)

@@ -100,6 +100,12 @@ class PoseNet(Backbone):
         )
         return dataclasses.replace(output, auxiliary=auxiliary)
 
+    def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
+        return self.trunk((images - self.mean) / self.std)[2]
+
+    def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
+        return self.head.describe(pooled)
+
 
 def torchvision_to_posenet_key(key: str) -> str | None:
     """Name in PoseNet of a torchvision GoogLeNet parameter, or None if it has none."""

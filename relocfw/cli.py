@@ -26,7 +26,7 @@ from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.localize_job import find_images, localize_images
 from relocfw.model_file import save_model
 from relocfw.options import integer_at_least
-from relocfw.pipeline import Relocalizer, check_retrieval
+from relocfw.pipeline import Relocalizer, check_retrieval, check_scoring
 from relocfw.plugin_discovery import conflicts, discover_options, source_of
 from relocfw.training import TrainSettings
 
@@ -102,9 +102,17 @@ class Method:
     identity: dict[str, Any]
     options: dict[str, dict[str, Any]]
 
+    scoring: str
+
     def relocalizer(self, device: torch.device, batch_size: int) -> Relocalizer:
         return Relocalizer(
-            self.backbone, self.index, self.crop, device, batch_size, self.retrieval_k
+            self.backbone,
+            self.index,
+            self.crop,
+            device,
+            batch_size,
+            self.retrieval_k,
+            self.scoring,
         )
 
 
@@ -114,6 +122,8 @@ def method_label(cfg: DictConfig, choices: Mapping[str, str]) -> str:
         label += f" (k={cfg.index.k})"
     if int(cfg.retrieval_k) > 0:
         label = f"retrieval of {cfg.retrieval_k} nearest, {choices['crop']} crop"
+    if cfg.scoring != "plain":
+        label += f", {cfg.scoring} scoring"
     if choices["backbone"] != "posenet" or int(cfg.backbone.get("mc_samples", 0)) > 0:
         samples = int(cfg.backbone.get("mc_samples", 0))
         label = f"{choices['backbone']}{f' x{samples} MC' if samples else ''}: {label}"
@@ -130,6 +140,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     index = build(cfg, "index", choices["index"])
     crop = build(cfg, "crop", choices["crop"])
     check_retrieval(index, retrieval_k)
+    check_scoring(str(cfg.scoring), backbone)
     options = {
         group: {
             k: v
@@ -153,6 +164,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
         settings,
         identity,
         options,
+        str(cfg.scoring),
     )
 
 
@@ -195,7 +207,9 @@ def prepare_model(cfg: DictConfig, method: Method, train: tuple, device: torch.d
 def run_localize(cfg: DictConfig, device: torch.device) -> None:
     if not cfg.model:
         raise ConfigError("model is not set: pass model=FILE (a model.relocfw from a run)")
-    relocalizer = Relocalizer.load(Path(cfg.model), device, int(cfg.query_batch_size))
+    relocalizer = Relocalizer.load(
+        Path(cfg.model), device, int(cfg.query_batch_size), str(cfg.scoring)
+    )
     images = find_images(str(cfg.images or ""))
     localize_images(relocalizer, images, Path(HydraConfig.get().runtime.output_dir), cfg.quiet)
 

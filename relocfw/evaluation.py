@@ -77,7 +77,8 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
         "mean_orientation_deg": float(np.mean(orientations)),
         "share_within_0.5m_15deg": float(np.mean(within)),
         "mean_seconds_per_query": float(np.mean([a.seconds for a in result.answers])),
-        "mean_network_passes": float(np.mean([a.evaluations for a in result.answers])),
+        "mean_network_passes": float(np.mean([a.network_passes for a in result.answers])),
+        "mean_crops_scored": float(np.mean([a.evaluations for a in result.answers])),
     }
 
 
@@ -86,6 +87,7 @@ ANSWER_COLUMNS = (
     "crop_y",
     "crop_size",
     "distance",
+    "crops_scored",
     "network_passes",
     "seconds",
     "position_spread_m",
@@ -111,6 +113,7 @@ def answer_cells(answer: Localization) -> list[str | int]:
         answer.crop.size,
         f"{answer.distance:.6f}",
         answer.evaluations,
+        f"{answer.network_passes:.3f}",
         f"{answer.seconds:.6f}",
         f"{answer.position_spread:.6f}",
         f"{answer.orientation_spread_deg:.4f}",

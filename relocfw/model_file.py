@@ -71,7 +71,9 @@ def save_model(
     return Path(path)
 
 
-def load_model(path: Path, device: str | torch.device = "cpu", batch_size: int = 64) -> Relocalizer:
+def load_model(
+    path: Path, device: str | torch.device = "cpu", batch_size: int = 64, scoring: str = "plain"
+) -> Relocalizer:
     """The Relocalizer saved in `path`, ready to localize."""
     path = Path(path)
     payload = read_torch_file(path, "model")
@@ -92,7 +94,9 @@ def load_model(path: Path, device: str | torch.device = "cpu", batch_size: int =
         crop = import_class(payload["crop"]["class"], path)(**payload["crop"]["options"])
     except (KeyError, TypeError, RuntimeError) as error:
         raise DataError(f"{path}: damaged or incompatible model file ({error})") from error
-    relocalizer = Relocalizer(backbone, index, crop, device, batch_size, payload["retrieval_k"])
+    relocalizer = Relocalizer(
+        backbone, index, crop, device, batch_size, payload["retrieval_k"], scoring
+    )
     if "map_poses" in payload:
         relocalizer.map_poses = [Pose(row[:3], row[3:]) for row in payload["map_poses"].numpy()]
     relocalizer.metadata = payload["metadata"]

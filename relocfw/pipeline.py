@@ -9,6 +9,7 @@ from typing import NamedTuple
 
 import numpy as np
 import torch
+from threadpoolctl import ThreadpoolController
 
 from relocfw.errors import ConfigError, DataError
 from relocfw.geometry import mean_quaternion
@@ -16,6 +17,9 @@ from relocfw.imaging import Strip, to_network_input
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.progress import Progress
 from relocfw.values import Crop, Localization, Pose
+from relocfw.window_pooling import StripMaps
+
+SCORINGS = ("plain", "shared")
 
 
 class NetworkAnswers(NamedTuple):
@@ -43,6 +47,17 @@ def check_retrieval(index: SimilarityIndex, retrieval_k: int) -> None:
         )
 
 
+def check_scoring(scoring: str, backbone: Backbone) -> None:
+    """Raise ConfigError unless `backbone` can score crops the way `scoring` names."""
+    if scoring not in SCORINGS:
+        raise ConfigError(f"scoring must be one of {', '.join(SCORINGS)}, got {scoring!r}")
+    if scoring == "shared" and not backbone.shares_strip:
+        raise ConfigError(
+            f"scoring=shared needs a backbone with feature_maps and describe_pooled; "
+            f"{type(backbone).__name__} lacks them (use scoring=plain)"
+        )
+
+
 class Relocalizer:
     """Fits the map from training images and localizes query images.
 
@@ -59,6 +74,12 @@ class Relocalizer:
             answers with the distance-weighted mean pose of the k training images
             nearest to the chosen crop's descriptor: the image-retrieval baseline.
             Needs an index with `neighbours` (index=exhaustive) and training poses.
+        scoring: how candidate crops are scored. "plain": each distinct window goes
+            through the whole network (the paper). "shared": the trunk runs once over
+            the whole strip and every candidate is pooled from its maps
+            (relocfw.window_pooling); the chosen crop then goes through the plain path
+            once, so the pose is the plain pose of that crop. Needs a backbone with
+            `feature_maps` and `describe_pooled`.
     """
 
     def __init__(
@@ -69,25 +90,37 @@ class Relocalizer:
         device: str | torch.device = "cpu",
         batch_size: int = 64,
         retrieval_k: int = 0,
+        scoring: str = "plain",
     ) -> None:
+        check_scoring(scoring, backbone)
+        self.scoring = scoring
         self.device = torch.device(device)
         self.backbone = backbone.to(self.device).eval()
+        self.memory_format = torch.contiguous_format
+        if backbone.channels_last:
+            self.memory_format = torch.channels_last
+            self.backbone.to(memory_format=self.memory_format)
         self.index = index
         self.crop = crop
         self.batch_size = int(batch_size)
         self.retrieval_k = int(retrieval_k)
         check_retrieval(index, self.retrieval_k)
+        self._threadpools: ThreadpoolController | None = None  # found on first query
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
 
     @classmethod
     def load(
-        cls, path: str | Path, device: str | torch.device = "cpu", batch_size: int = 64
+        cls,
+        path: str | Path,
+        device: str | torch.device = "cpu",
+        batch_size: int = 64,
+        scoring: str = "plain",
     ) -> Relocalizer:
         """A fitted Relocalizer from a model file written by `relocfw task=relocalize`."""
         from relocfw.model_file import load_model  # the file format builds on this class
 
-        return load_model(Path(path), device, batch_size)
+        return load_model(Path(path), device, batch_size, scoring)
 
     @torch.inference_mode()
     def _forward(self, inputs: torch.Tensor) -> NetworkAnswers:
@@ -95,6 +128,7 @@ class Relocalizer:
         parts = []
         for start in range(0, len(inputs), self.batch_size):
             batch = to_network_input(inputs[start : start + self.batch_size].to(self.device))
+            batch = batch.contiguous(memory_format=self.memory_format)
             out = self.backbone(batch)
             n = len(batch)
             parts.append(
@@ -139,14 +173,43 @@ class Relocalizer:
         self.map_poses = list(poses) if poses is not None else []
         return features
 
+    def _one_blas_thread(self) -> ThreadpoolController:
+        """Run map queries on one BLAS thread.
+
+        A query's index lookups are small. A multi-threaded BLAS call leaves its
+        workers spinning afterwards, competing with the network's threads for the
+        same cores: on 2 cores it nearly doubled the sweep's time per query.
+        """
+        if self._threadpools is None:
+            self._threadpools = ThreadpoolController()
+        return self._threadpools.limit(limits=1, user_api="blas")
+
+    def _map_distance(self, features: np.ndarray) -> np.ndarray:
+        with self._one_blas_thread():
+            return self.index.distance(features)
+
     def _retrieved_pose(self, features: np.ndarray) -> Pose:
-        distances, indices = self.index.neighbours(features[None], self.retrieval_k)
+        with self._one_blas_thread():
+            distances, indices = self.index.neighbours(features[None], self.retrieval_k)
         weights = 1.0 / (distances[0] + 1e-6)
         weights /= weights.sum()
         poses = [self.map_poses[i] for i in indices[0]]
         position = np.sum([w * p.position for w, p in zip(weights, poses, strict=True)], axis=0)
         quaternion = mean_quaternion(np.stack([p.quaternion for p in poses]), weights)
         return Pose(position, quaternion)
+
+    @torch.inference_mode()
+    def _strip_maps(self, strip: Strip) -> StripMaps:
+        """The trunk's maps of the whole strip: one pass for every candidate window."""
+        pixels = to_network_input(strip.pixels[None].to(self.device))
+        pixels = pixels.contiguous(memory_format=self.memory_format)
+        maps = self.backbone.feature_maps(pixels)[0]
+        height, width = strip.pixels.shape[1:]
+        return StripMaps(maps, height, width, self.backbone.input_size)
+
+    @torch.inference_mode()
+    def _shared_features(self, maps: StripMaps, corners: list[tuple[int, int]]) -> np.ndarray:
+        return self.backbone.describe_pooled(maps.pooled(corners)).double().cpu().numpy()
 
     def localize(self, image: np.ndarray) -> Localization:
         """Pose of one RGB image (H x W x 3 uint8) through the crop search."""
@@ -155,21 +218,35 @@ class Relocalizer:
         # Network answers per strip window: offsets that round to the same window are
         # the same network input, so it is computed once.
         results: dict[tuple[int, int], tuple[float, NetworkAnswers]] = {}
+        shared: dict[tuple[int, int], float] = {}  # scoring=shared: window -> distance
+        strip_maps: list[StripMaps] = []  # built on the first shared score, if any
 
         def evaluate(corners: list[tuple[int, int]]) -> None:
             new = list(dict.fromkeys(c for c in corners if c not in results))
             if not new:
                 return
             answers = self._forward(torch.stack([strip.cut(c) for c in new]))
-            distances = self.index.distance(answers.features)
+            distances = self._map_distance(answers.features)
             for i, corner in enumerate(new):
                 results[corner] = (
                     float(distances[i]),
                     NetworkAnswers(*(column[i] for column in answers)),
                 )
 
+        def score_shared(corners: list[tuple[int, int]]) -> None:
+            new = list(dict.fromkeys(c for c in corners if c not in shared))
+            if not new:
+                return
+            if not strip_maps:
+                strip_maps.append(self._strip_maps(strip))
+            distances = self._map_distance(self._shared_features(strip_maps[0], new))
+            shared.update(zip(new, (float(d) for d in distances), strict=True))
+
         def distance(crops: Sequence[Crop]) -> np.ndarray:
             corners = [strip.window(c) for c in crops]
+            if self.scoring == "shared":
+                score_shared(corners)
+                return np.array([shared[c] for c in corners])
             evaluate(corners)
             return np.array([results[c][0] for c in corners])
 
@@ -181,12 +258,17 @@ class Relocalizer:
             pose = self._retrieved_pose(answer.features)
         else:
             pose = Pose(answer.positions, answer.quaternions)
+        # Cost in whole-network passes: each plain window is one; the strip pass costs
+        # its area over a window's (the trunk dominates the network's work).
+        side = self.backbone.input_size
+        strip_passes = strip.pixels.shape[1] * strip.pixels.shape[2] / side**2
         return Localization(
             pose=pose,
             crop=chosen,
             distance=best_distance,
-            evaluations=len(results),
+            evaluations=len(set(results) | set(shared)),
             seconds=time.perf_counter() - start,
             position_spread=float(answer.position_spread),
             orientation_spread_deg=float(answer.orientation_spread_deg),
+            network_passes=len(results) + (strip_passes if strip_maps else 0.0),
         )

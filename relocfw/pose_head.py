@@ -58,13 +58,17 @@ class PoseHead(nn.Module):
         self.dropout_rate = dropout
         self.regressor = PoseRegressor(feature_dim)
 
+    def describe(self, pooled: torch.Tensor) -> torch.Tensor:
+        """[n, C] pooled trunk features -> [n, D] descriptors (no dropout, no pose)."""
+        return torch.relu(self.descriptor(pooled))
+
     def forward(
         self,
         pooled: torch.Tensor,
         to_world: Callable[[torch.Tensor], torch.Tensor],
         mc_samples: int = 0,
     ) -> PoseOutput:
-        features = torch.relu(self.descriptor(pooled))
+        features = self.describe(pooled)
         if self.training or mc_samples <= 0:
             dropped = nn.functional.dropout(features, self.dropout_rate, self.training)
             positions, quaternions = self.regressor(dropped)

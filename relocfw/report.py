@@ -12,6 +12,7 @@ COLUMNS = (
     ("mean_orientation_deg", "mean ori (deg)", "{:.2f}"),
     ("share_within_0.5m_15deg", "<0.5m & <15deg", "{:.1%}"),
     ("mean_seconds_per_query", "ms/query", "{:.1f}"),
+    ("mean_crops_scored", "crops/query", "{:.1f}"),
     ("mean_network_passes", "passes/query", "{:.1f}"),
 )
 

@@ -64,7 +64,13 @@ class Localization:
     pose: Pose
     crop: Crop
     distance: float  # descriptor distance of the chosen crop to the map
-    evaluations: int  # distinct crops that went through the network
+    evaluations: int  # distinct crops scored
     seconds: float
     position_spread: float = float("nan")  # Bayesian uncertainty (m), NaN when not sampled
     orientation_spread_deg: float = float("nan")
+    # Network cost in whole-input passes; None: one per crop scored (scoring=plain).
+    network_passes: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.network_passes is None:
+            object.__setattr__(self, "network_passes", float(self.evaluations))

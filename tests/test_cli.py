@@ -111,6 +111,7 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
         (["device=cuda:7"], "device"),
         (["task=compare", "compare.reference=Nobody"], "compare.reference"),
         (["retrieval_k=1"], "needs an index that returns neighbours"),
+        (["scoring=fast"], "scoring must be one of plain, shared, got 'fast'"),
     ],
 )
 def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):

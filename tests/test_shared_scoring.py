@@ -1,0 +1,118 @@
+"""scoring=shared: every candidate window pooled from one trunk pass over the strip."""
+
+import numpy as np
+import pytest
+import torch
+
+from relocfw import ConfigError, Relocalizer
+from relocfw.imaging import Strip
+from relocfw.interfaces import Backbone
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.plugins.ga_crop import GeneticCropSearch
+from relocfw.plugins.kmeans_index import KMeansIndex
+from relocfw.plugins.posenet import PoseNet
+from relocfw.values import PoseOutput
+from relocfw.window_pooling import StripMaps, coverage_weights
+
+
+def tiny_posenet() -> PoseNet:
+    torch.manual_seed(0)
+    return PoseNet(input_size=32, width=0.125, feature_dim=32)
+
+
+class BoxFilter(Backbone):
+    """Maps = 8x8 block means: a window at a multiple of 8 pixels is exactly its cells."""
+
+    input_size = 32
+    feature_dim = 3
+
+    def forward(self, images):
+        pooled = images.mean(dim=(2, 3))
+        return PoseOutput(pooled, torch.nn.functional.normalize(images[:, 0, :4, 0]), pooled)
+
+    def feature_maps(self, images):
+        return torch.nn.functional.avg_pool2d(images, 8)
+
+    def describe_pooled(self, pooled):
+        return pooled
+
+
+def test_coverage_weights_split_the_end_cells():
+    weights = coverage_weights(torch.tensor([0.5, 0.0, 2.0]), 2, 4)
+    expected = [[0.25, 0.5, 0.25, 0.0], [0.5, 0.5, 0.0, 0.0], [0.0, 0.0, 0.5, 0.5]]
+    assert torch.allclose(weights, torch.tensor(expected))
+
+
+@pytest.mark.parametrize("shape", [(32, 56), (56, 32)])
+def test_windows_on_the_cell_grid_pool_exactly(shape):
+    height, width = shape
+    torch.manual_seed(0)
+    strip = torch.rand(1, 3, height, width)
+    backbone = BoxFilter()
+    maps = StripMaps(backbone.feature_maps(strip)[0], height, width, 32)
+    corners = [(0, x) if width > height else (x, 0) for x in (0, 8, 16, 24)]
+    pooled = maps.pooled(corners)
+    for (y, x), row in zip(corners, pooled, strict=True):
+        window = strip[:, :, y : y + 32, x : x + 32]
+        assert torch.allclose(row, window.mean(dim=(0, 2, 3)), atol=1e-6)
+    # Off the grid, the window is interpolated between its neighbours on the grid.
+    between = maps.pooled([(0, 4)] if width > height else [(4, 0)])[0]
+    assert torch.allclose(between, (pooled[0] + pooled[1]) / 2, atol=1e-6)
+
+
+def test_a_square_image_gives_the_plain_descriptor():
+    backbone = tiny_posenet().eval()
+    image = torch.rand(1, 3, 32, 32)
+    with torch.inference_mode():
+        maps = StripMaps(backbone.feature_maps(image)[0], 32, 32, 32)
+        shared = backbone.describe_pooled(maps.pooled([(0, 0)]))
+        plain = backbone(image).features
+    assert torch.allclose(shared, plain, atol=1e-5)
+
+
+def fitted(scoring: str, crop, scene) -> Relocalizer:
+    train, _ = scene
+    relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), crop, scoring=scoring)
+    relocalizer.fit(train)
+    return relocalizer
+
+
+@pytest.fixture
+def scene(tiny_scene):
+    from relocfw.data.frames import read_images
+    from relocfw.data.sevenscenes import load_sevenscenes
+
+    return tuple(
+        read_images(load_sevenscenes(tiny_scene, None, split), quiet=True)
+        for split in ("train", "test")
+    )
+
+
+def test_shared_ga_answers_with_the_plain_pose_of_its_crop(scene):
+    shared = fitted("shared", GeneticCropSearch(seed=0), scene)
+    plain = fitted("plain", CentreCrop(), scene)
+    image = scene[1][0]
+    answer = shared.localize(image)
+    strip = Strip(image, 32)
+    exact = plain._forward(strip.cut(strip.window(answer.crop))[None])
+    assert np.allclose(answer.pose.position, exact.positions[0], atol=1e-6)
+    assert np.allclose(answer.pose.quaternion, exact.quaternions[0], atol=1e-6)
+    # One trunk pass over the 43x32 strip plus the chosen crop's plain pass.
+    assert answer.network_passes == pytest.approx(1 + 43 * 32 / 32**2)
+    assert 1 < answer.evaluations <= 12
+
+
+def test_centre_crop_never_runs_the_strip(scene):
+    answer = fitted("shared", CentreCrop(), scene).localize(scene[1][0])
+    assert answer.network_passes == 1 and answer.evaluations == 1
+
+
+def test_unknown_scoring_and_backbones_without_the_hooks_are_refused():
+    with pytest.raises(ConfigError, match="scoring must be one of plain, shared"):
+        Relocalizer(tiny_posenet(), KMeansIndex(k=4), CentreCrop(), scoring="fast")
+
+    class PlainOnly(BoxFilter):
+        feature_maps = Backbone.feature_maps
+
+    with pytest.raises(ConfigError, match="PlainOnly lacks them"):
+        Relocalizer(PlainOnly(), KMeansIndex(k=4), CentreCrop(), scoring="shared")
