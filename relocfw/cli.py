@@ -19,6 +19,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from relocfw import __version__, jobs
 from relocfw.compare_job import MapView, write_comparison
+from relocfw.distributed import World
 from relocfw.errors import ConfigError, RelocfwError
 from relocfw.hydra_plugins import install as install_plugin_discovery
 from relocfw.hydra_plugins import options_help
@@ -28,6 +29,7 @@ from relocfw.model_file import save_model
 from relocfw.options import integer_at_least
 from relocfw.pipeline import Relocalizer, check_retrieval, check_scoring
 from relocfw.plugin_discovery import conflicts, discover_options, source_of
+from relocfw.torchrun import join_torchrun, leave_torchrun
 from relocfw.training import TrainSettings
 
 TASKS = ("relocalize", "train", "compare", "localize", "plugins")
@@ -184,7 +186,13 @@ def check_common(cfg: DictConfig) -> torch.device:
     return pick_device(cfg.device)
 
 
-def prepare_model(cfg: DictConfig, method: Method, train: tuple, device: torch.device) -> Path:
+def prepare_model(
+    cfg: DictConfig,
+    method: Method,
+    train: tuple,
+    device: torch.device,
+    world: World | None = None,
+) -> Path:
     checkpoint, training = jobs.train_or_reuse(
         method.backbone,
         *train,
@@ -193,7 +201,10 @@ def prepare_model(cfg: DictConfig, method: Method, train: tuple, device: torch.d
         Path(cfg.cache_dir),
         device,
         bool(cfg.quiet),
+        world,
     )
+    if world is not None and not world.is_main:
+        return checkpoint
     if training.reused:
         how = "reused"
     elif training.resumed_from:
@@ -216,6 +227,14 @@ def run_localize(cfg: DictConfig, device: torch.device) -> None:
 
 def run(cfg: DictConfig) -> None:
     device = check_common(cfg)
+    world, device = join_torchrun(str(cfg.task), device)
+    try:
+        run_task(cfg, device, world)
+    finally:
+        leave_torchrun(world)
+
+
+def run_task(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     if cfg.task == "compare":
         run_compare(cfg, device)
         return
@@ -230,10 +249,15 @@ def run(cfg: DictConfig) -> None:
     method = build_method(cfg, choices)
     dataset = build(cfg, "dataset", choices["dataset"])
     quiet = bool(cfg.quiet)
-    train = jobs.load_split(dataset, "train", quiet)
+    # Under torchrun, rank 0 loads (and renders, for the synthetic scene) first.
+    if world is not None and not world.is_main:
+        world.barrier()
+    train = jobs.load_split(dataset, "train", quiet or (world is not None and not world.is_main))
+    if world is not None and world.is_main:
+        world.barrier()
     if cfg.task == "relocalize":
         method.index.check_map_size(len(train[0]))
-    checkpoint = prepare_model(cfg, method, train, device)
+    checkpoint = prepare_model(cfg, method, train, device, world)
     if cfg.task == "train":
         jobs.write_skipped(dataset, run_dir)
         return

@@ -13,6 +13,7 @@ import torch
 from relocfw.checkpoints import CHECKPOINT_FORMAT, settings_key, write_text_atomic
 from relocfw.data.frames import Frame, mean_pose, read_good_images
 from relocfw.data.on_error import OnError
+from relocfw.distributed import World
 from relocfw.errors import DataError
 from relocfw.evaluation import (
     MethodResult,
@@ -71,6 +72,7 @@ def train_or_reuse(
     cache_dir: Path,
     device: torch.device,
     quiet: bool,
+    world: World | None = None,
 ) -> tuple[Path, TrainingRun]:
     """Train the backbone, or load the checkpoint of the same model trained before.
 
@@ -90,7 +92,7 @@ def train_or_reuse(
     )
     checkpoint = Path(cache_dir).expanduser() / "checkpoints" / f"{key}.pt"
     data = TrainingImages(images, [f.pose for f in frames], backbone.input_size)
-    run = train_backbone(backbone, data, settings, checkpoint, key, device, quiet)
+    run = train_backbone(backbone, data, settings, checkpoint, key, device, quiet, world)
     return checkpoint, run
 
 

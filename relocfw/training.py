@@ -17,6 +17,7 @@ from relocfw.checkpoints import (
     remove_stale_temporaries,
     save_atomic,
 )
+from relocfw.distributed import World
 from relocfw.errors import ConfigError, DataError
 from relocfw.imaging import Strip, to_network_input
 from relocfw.interfaces import Backbone
@@ -174,14 +175,23 @@ def train_backbone(
     key: str = "",
     device: str | torch.device = "cpu",
     quiet: bool = False,
+    world: World | None = None,
 ) -> TrainingRun:
     """Train `backbone` in place; returns the loss of every step.
 
     With a checkpoint path: a complete checkpoint with the same key is loaded instead
     of training (the same model asked for again); an incomplete one is resumed; a new
     one is written every `checkpoint_every` steps and at the end, atomically.
+
+    With a `world` (torch.distributed initialised, e.g. under torchrun), this process
+    trains on its share of every global batch under DistributedDataParallel; rank 0
+    alone writes checkpoints and shows progress. Losses are global-batch means.
     """
     settings.validate()
+    if world is not None:
+        world.check_batch(settings.batch_size)
+        quiet = quiet or not world.is_main
+    writes = world is None or world.is_main
     device = torch.device(device)
     torch.manual_seed(settings.seed)
     generator = torch.Generator().manual_seed(settings.seed)
@@ -194,7 +204,7 @@ def train_backbone(
     optimizer = make_optimizer([backbone, weighting], settings)
     losses: list[float] = []
     step = resumed_from = 0
-    if checkpoint is not None:
+    if checkpoint is not None and writes:
         remove_stale_temporaries(checkpoint)
     if checkpoint is not None and Path(checkpoint).is_file():
         state = load_checkpoint(checkpoint)
@@ -217,7 +227,7 @@ def train_backbone(
         resumed_from = step
 
     def save(complete: bool) -> None:
-        if checkpoint is not None:
+        if checkpoint is not None and writes:
             payload = {
                 "format": CHECKPOINT_FORMAT,
                 "key": key,
@@ -233,17 +243,23 @@ def train_backbone(
             }
             save_atomic(payload, checkpoint)
 
+    model: torch.nn.Module = backbone
+    if world is not None:
+        # Rank 0's initial weights are broadcast; gradients are averaged in backward.
+        device_ids = [device.index] if device.type == "cuda" else None
+        model = torch.nn.parallel.DistributedDataParallel(backbone, device_ids=device_ids)
     backbone.train()
     progress = Progress(settings.iterations, "training", quiet=quiet)
     progress.advance(step)
     while step < settings.iterations:
         indices = torch.randint(len(data), (settings.batch_size,), generator=generator)
-        images, true_positions, true_quaternions = data.batch(
-            indices, generator, settings.random_crops
-        )
+        batch = data.batch(indices, generator, settings.random_crops)
+        if world is not None:
+            batch = tuple(world.share(part) for part in batch)
+        images, true_positions, true_quaternions = batch
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(settings, step)
-        output = backbone(to_network_input(images.to(device)))
+        output = model(to_network_input(images.to(device)))
         loss = posenet_loss(
             output,
             true_positions.to(device),
@@ -251,15 +267,18 @@ def train_backbone(
             weighting,
             settings.auxiliary_weights,
         )
-        if not torch.isfinite(loss):
+        batch_loss = loss if world is None else world.mean(loss)
+        if not torch.isfinite(batch_loss):
             raise DataError(
-                f"training diverged at step {step} (loss {loss.item()}); lower train.lr"
+                f"training diverged at step {step} (loss {batch_loss.item()}); lower train.lr"
             )
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if world is not None:
+            world.average_gradients(weighting)
         optimizer.step()
         step += 1
-        losses.append(loss.item())
+        losses.append(batch_loss.item())
         recent = float(np.mean(losses[-20:]))
         progress.advance(1, suffix=f"loss {recent:.3f}")
         if step % settings.checkpoint_every == 0 and step < settings.iterations:
@@ -267,4 +286,6 @@ def train_backbone(
     progress.close()
     backbone.eval()
     save(complete=True)
+    if world is not None:
+        world.barrier()  # the checkpoint is complete before any process moves on
     return TrainingRun(losses, reused=False, resumed_from=resumed_from)
