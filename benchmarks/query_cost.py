@@ -19,23 +19,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from rendered import render_views  # benchmarks/, the script's own folder
 
 from relocfw import Relocalizer
-from relocfw.data.room import Room, RoomRenderer
-from relocfw.data.synthetic import SyntheticSceneSpec, lap_poses, scene_laps
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
 from relocfw.plugins.sweep_crop import SweepCrop
-
-
-def render_views(count: int, lap_index: int, seed: int = 0) -> list[np.ndarray]:
-    room = Room()
-    renderer = RoomRenderer(room, seed=seed)
-    train_laps, test_lap = scene_laps(SyntheticSceneSpec(seed=seed))
-    lap = test_lap if lap_index < 0 else train_laps[lap_index]
-    return [renderer.render(pose, 640, 480) for pose in lap_poses(lap, count, room)]
 
 
 def main() -> None:
@@ -47,8 +38,8 @@ def main() -> None:
     args = parser.parse_args()
     torch.manual_seed(0)
     backbone = PoseNet(input_size=args.input_size).eval()
-    queries = render_views(args.queries, -1)
-    map_images = render_views(args.map_images, 0)
+    queries, _ = render_views(args.queries, -1)
+    map_images, _ = render_views(args.map_images, 0)
     rows = []
     for name, crop, scoring in (
         ("centre", CentreCrop(), "plain"),

@@ -199,7 +199,9 @@ def train_backbone(
     backbone.set_position_normalisation(
         positions.mean(axis=0), float(max(positions.std(axis=0).mean(), 1e-3))
     )
-    backbone.to(device)
+    # Channels-last trains GoogLeNet about 1.6x faster on CPU (benchmarks/).
+    memory_format = torch.channels_last if backbone.channels_last else torch.contiguous_format
+    backbone.to(device=device, memory_format=memory_format)
     weighting = make_weighting(settings).to(device)
     optimizer = make_optimizer([backbone, weighting], settings)
     losses: list[float] = []
@@ -259,7 +261,8 @@ def train_backbone(
         images, true_positions, true_quaternions = batch
         for group in optimizer.param_groups:
             group["lr"] = learning_rate(settings, step)
-        output = model(to_network_input(images.to(device)))
+        inputs = to_network_input(images.to(device)).contiguous(memory_format=memory_format)
+        output = model(inputs)
         loss = posenet_loss(
             output,
             true_positions.to(device),

@@ -112,6 +112,8 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
         (["task=compare", "compare.reference=Nobody"], "compare.reference"),
         (["retrieval_k=1"], "needs an index that returns neighbours"),
         (["scoring=fast"], "scoring must be one of plain, shared, got 'fast'"),
+        (["index=faiss", "index.kind=lsh"], "index.kind must be one of flat, ivf, hnsw"),
+        (["index=faiss", "index.kind=ivf"], "nlist=1024 is more IVF cells than map"),
     ],
 )
 def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):

@@ -23,6 +23,14 @@ def test_builtin_indexes(make):
     check_similarity_index(make)
 
 
+@pytest.mark.parametrize("kind", ["flat", "ivf", "hnsw"])
+def test_faiss_index(kind):
+    pytest.importorskip("faiss")
+    from relocfw.plugins.faiss_index import FaissIndex
+
+    check_similarity_index(lambda: FaissIndex(kind=kind, nlist=4, nprobe=4))
+
+
 def test_posenet_backbone():
     check_backbone(PoseNet(input_size=32, width=0.125, feature_dim=16))
     check_backbone(PoseNet(input_size=32, width=0.125, feature_dim=16, mc_samples=4))

@@ -1,0 +1,23 @@
+"""Views of the synthetic room at the paper's geometry, shared by the benchmarks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from relocfw.data.room import Room, RoomRenderer
+from relocfw.data.synthetic import SyntheticSceneSpec, lap_poses, scene_laps
+from relocfw.geometry import pose_from_matrix
+from relocfw.values import Pose
+
+
+def render_views(
+    count: int, lap_index: int, width: int = 640, height: int = 480, seed: int = 0
+) -> tuple[list[np.ndarray], list[Pose]]:
+    """`count` images and poses along training lap `lap_index` (-1: the test lap)."""
+    room = Room()
+    renderer = RoomRenderer(room, seed=seed)
+    train_laps, test_lap = scene_laps(SyntheticSceneSpec(seed=seed))
+    lap = test_lap if lap_index < 0 else train_laps[lap_index]
+    matrices = lap_poses(lap, count, room)
+    images = [renderer.render(matrix, width, height) for matrix in matrices]
+    return images, [pose_from_matrix(matrix) for matrix in matrices]
