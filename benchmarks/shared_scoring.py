@@ -131,6 +131,14 @@ def main() -> None:
         pose_difference([a.pose for a in plain_ga], [a.pose for a in shared_ga]), axis=1
     )
     same_crop = np.mean([p.crop == s.crop for p, s in zip(plain_ga, shared_ga, strict=True)])
+    # The same comparison between two plain runs that differ only in the GA's seed:
+    # how far apart answers are when nothing but the search's randomness changes.
+    plain_next = [
+        a for seed in range(args.seeds) for a in answers["ga", "plain", (seed + 1) % args.seeds]
+    ]
+    seed_differences = np.stack(
+        pose_difference([a.pose for a in plain_ga], [a.pose for a in plain_next]), axis=1
+    )
 
     def ga_medians(scoring: str) -> list[float]:
         return [
@@ -156,6 +164,10 @@ def main() -> None:
             "max_m": float(differences[:, 0].max()),
             "median_deg": float(np.median(differences[:, 1])),
             "max_deg": float(differences[:, 1].max()),
+        },
+        "ga_plain_seed_to_seed_pose_difference": {
+            "median_m": float(np.median(seed_differences[:, 0])),
+            "median_deg": float(np.median(seed_differences[:, 1])),
         },
         "ga_median_position_by_seed": {
             "plain": ga_medians("plain"),
@@ -183,6 +195,11 @@ def main() -> None:
         f"GA same crop: {same_crop:.0%}; GA pose difference median "
         f"{report['ga_pose_difference']['median_m']:.3f} m / "
         f"{report['ga_pose_difference']['median_deg']:.2f} deg"
+    )
+    seeds = report["ga_plain_seed_to_seed_pose_difference"]
+    print(
+        f"for scale, plain GA against plain GA with the next seed: median "
+        f"{seeds['median_m']:.3f} m / {seeds['median_deg']:.2f} deg"
     )
     low, high = report["ga_seed0_median_difference_95ci_m"]
     print(f"GA median position, shared - plain (seed 0), 95% CI: [{low:+.3f}, {high:+.3f}] m")

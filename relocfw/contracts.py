@@ -17,6 +17,7 @@ import torch
 
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex, crop_side_and_span
 from relocfw.values import Crop, PoseOutput
+from relocfw.window_pooling import StripMaps
 
 IMAGE_SIZES = ((640, 480), (160, 120), (300, 400), (97, 64), (100, 100))
 
@@ -86,7 +87,8 @@ def check_similarity_index(make_index: Callable[[], SimilarityIndex], dim: int =
 
 def check_backbone(backbone: Backbone) -> None:
     """forward() maps [B, 3, s, s] images in [0, 1] to positions [B, 3], unit quaternions
-    [B, 4] and descriptors [B, feature_dim]; training mode is differentiable."""
+    [B, 4] and descriptors [B, feature_dim]; training mode is differentiable; with the
+    scoring=shared hooks, pooling the maps of a square image gives the same descriptor."""
     assert isinstance(backbone, Backbone), "a backbone must subclass relocfw.Backbone"
     size = int(backbone.input_size)
     images = torch.rand(2, 3, size, size)
@@ -106,3 +108,13 @@ def check_backbone(backbone: Backbone) -> None:
     loss.backward()
     assert any(p.grad is not None for p in backbone.parameters()), "no gradient reached weights"
     backbone.eval()
+    if backbone.shares_strip:
+        # On a square image the one window is the whole image: shared == plain.
+        with torch.inference_mode():
+            maps = backbone.feature_maps(images)
+            pooled = StripMaps(maps[0], size, size, size).pooled([(0, 0)])
+            shared = backbone.describe_pooled(pooled)
+            plain = backbone(images[:1]).features
+        assert torch.allclose(shared, plain, atol=1e-4, rtol=1e-4), (
+            "describe_pooled(average of feature_maps) must equal forward()'s features"
+        )

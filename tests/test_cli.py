@@ -80,10 +80,11 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
     run_dir = tmp_path / "compare"
     result = relocfw([*TINY_OVERRIDES, "task=compare", f"hydra.run.dir={run_dir}"], tmp_path, cache)
     assert result.returncode == 0, result.stderr
-    # Five methods, one trained model.
-    assert result.stdout.count("(trained)") <= 1 and result.stdout.count("(reused)") >= 4
+    # Six methods, one trained model.
+    assert result.stdout.count("(trained)") <= 1 and result.stdout.count("(reused)") >= 5
     header = (run_dir / "comparison.csv").read_text().splitlines()[0]
-    for method in ("PoseNet", "Bayesian PoseNet", "Retrieval", "Ours (GA + k-means)"):
+    methods = ("PoseNet", "Bayesian PoseNet", "Retrieval", "Ours (GA + k-means)")
+    for method in (*methods, "Ours, shared scoring"):
         assert method in header
     assert "Bayesian PoseNet uncertainty" in result.stdout
     pngs = sorted(p.name for p in run_dir.glob("*.png"))

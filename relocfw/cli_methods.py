@@ -1,0 +1,194 @@
+"""The CLI's method building: a composed config in, checked plugin instances out."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from hydra.errors import InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from relocfw import jobs
+from relocfw.distributed import World
+from relocfw.errors import ConfigError, RelocfwError
+from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
+from relocfw.options import integer_at_least
+from relocfw.pipeline import Relocalizer, check_retrieval, check_scoring
+from relocfw.plugin_discovery import source_of
+from relocfw.training import TrainSettings
+
+INTERFACES = {"backbone": Backbone, "index": SimilarityIndex, "crop": CropSearch}
+
+
+def build(cfg: DictConfig, group: str, choice: str) -> Any:
+    """Instantiate the option chosen for `group`, turning failures into one message.
+
+    A plugin's failure names its distribution; an object that is not the group's
+    interface names the methods it lacks, before any training starts.
+    """
+    source = source_of(group, choice)
+    where = f"{group}={choice}"
+    if source is not None and source.distribution != "relocfw":
+        where += f" (from {source.distribution})"
+    try:
+        obj = instantiate(cfg[group])
+    except InstantiationException as error:
+        cause = error.__cause__ or error
+        if isinstance(cause, RelocfwError):
+            raise ConfigError(f"{where}: {cause}") from error
+        raise ConfigError(f"{where}: {type(cause).__name__}: {cause}") from error
+    except OmegaConfBaseException as error:
+        raise ConfigError(f"{where}: {error}") from error
+    expected = INTERFACES.get(group)
+    if expected is not None and not isinstance(obj, expected):
+        missing = sorted(
+            name for name in expected.__abstractmethods__ if not callable(getattr(obj, name, None))
+        )
+        lacks = f"; it lacks {', '.join(missing)}" if missing else ""
+        raise ConfigError(
+            f"{where}: {type(obj).__module__}.{type(obj).__qualname__} does not implement "
+            f"relocfw.{expected.__name__} (subclass it){lacks}"
+        )
+    return obj
+
+
+def train_settings(cfg: DictConfig) -> TrainSettings:
+    values = OmegaConf.to_container(cfg.train, resolve=True)
+    try:
+        for key in ("auxiliary_weights", "learned_init"):
+            if key in values:
+                values[key] = tuple(values[key])
+        settings = TrainSettings(**values)
+    except TypeError as error:
+        raise ConfigError(f"train: {error}") from error
+    settings.validate()
+    return settings
+
+
+def pick_device(name: str) -> torch.device:
+    try:
+        device = torch.device(name)
+    except RuntimeError as error:
+        raise ConfigError(f"device: {error}") from error
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device={name}, but CUDA is not available here; use device=cpu")
+    return device
+
+
+@dataclass
+class Method:
+    """Everything one configured method needs, built and checked."""
+
+    label: str
+    backbone: Backbone
+    index: SimilarityIndex
+    crop: CropSearch
+    retrieval_k: int
+    settings: TrainSettings
+    identity: dict[str, Any]
+    options: dict[str, dict[str, Any]]
+
+    scoring: str
+
+    def relocalizer(self, device: torch.device, batch_size: int) -> Relocalizer:
+        return Relocalizer(
+            self.backbone,
+            self.index,
+            self.crop,
+            device,
+            batch_size,
+            self.retrieval_k,
+            self.scoring,
+        )
+
+
+def method_label(cfg: DictConfig, choices: Mapping[str, str]) -> str:
+    label = f"{choices['crop']} + {choices['index']}"
+    if choices["index"] == "kmeans":
+        label += f" (k={cfg.index.k})"
+    if int(cfg.retrieval_k) > 0:
+        label = f"retrieval of {cfg.retrieval_k} nearest, {choices['crop']} crop"
+    if cfg.scoring != "plain":
+        label += f", {cfg.scoring} scoring"
+    if choices["backbone"] != "posenet" or int(cfg.backbone.get("mc_samples", 0)) > 0:
+        samples = int(cfg.backbone.get("mc_samples", 0))
+        label = f"{choices['backbone']}{f' x{samples} MC' if samples else ''}: {label}"
+    return label
+
+
+def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None = None) -> Method:
+    """Build and check every plugin before any slow work, so a bad option fails fast."""
+    settings = train_settings(cfg)
+    retrieval_k = integer_at_least("retrieval_k", cfg.retrieval_k, 0)
+    # Seeded here, in the CLI, so the same command initialises the same network.
+    torch.manual_seed(int(cfg.seed))
+    backbone = build(cfg, "backbone", choices["backbone"])
+    index = build(cfg, "index", choices["index"])
+    crop = build(cfg, "crop", choices["crop"])
+    check_retrieval(index, retrieval_k)
+    check_scoring(str(cfg.scoring), backbone)
+    options = {
+        group: {
+            k: v
+            for k, v in OmegaConf.to_container(cfg[group], resolve=True).items()
+            if k != "_target_"
+        }
+        for group in ("backbone", "index", "crop")
+    }
+    identity = {
+        "dataset": dataset_settings(cfg),
+        "backbone": {
+            k: v for k, v in options["backbone"].items() if k not in backbone.test_time_options
+        },
+    }
+    return Method(
+        label or method_label(cfg, choices),
+        backbone,
+        index,
+        crop,
+        retrieval_k,
+        settings,
+        identity,
+        options,
+        str(cfg.scoring),
+    )
+
+
+def dataset_settings(cfg: DictConfig) -> dict[str, Any]:
+    """What identifies the data: the dataset options without where caches live."""
+    values = OmegaConf.to_container(cfg.dataset, resolve=True)
+    return {k: v for k, v in values.items() if k not in ("cache_dir", "quiet")}
+
+
+def prepare_model(
+    cfg: DictConfig,
+    method: Method,
+    train: tuple,
+    device: torch.device,
+    world: World | None = None,
+) -> Path:
+    checkpoint, training = jobs.train_or_reuse(
+        method.backbone,
+        *train,
+        method.settings,
+        method.identity,
+        Path(cfg.cache_dir),
+        device,
+        bool(cfg.quiet),
+        world,
+    )
+    if world is not None and not world.is_main:
+        return checkpoint
+    if training.reused:
+        how = "reused"
+    elif training.resumed_from:
+        how = f"trained, resumed from step {training.resumed_from}"
+    else:
+        how = "trained"
+    print(f"model: {checkpoint} ({how})")
+    return checkpoint
