@@ -12,14 +12,13 @@ descriptors of rendered training views. Prints a table, writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from rendered import render_views  # benchmarks/, the script's own folder
+from common import render_views, write_json  # benchmarks/, the script's own folder
 
 from relocfw import Relocalizer
 from relocfw.plugins.centre_crop import CentreCrop
@@ -75,7 +74,6 @@ def main() -> None:
             f"{row['search']:<8} {row['scoring']:<8} {row['ms_per_query']:>9.1f} "
             f"{row['crops_scored']:>6.1f} {row['network_passes']:>7.2f} {row['times_centre']:>9.2f}"
         )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
     report = {
         "geometry": {"image": [640, 480], "crop": 480, "input": args.input_size},
         "queries": args.queries,
@@ -83,8 +81,7 @@ def main() -> None:
         "machine": platform.processor() or platform.machine(),
         "rows": rows,
     }
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"written: {args.out}")
+    write_json(report, args.out)
 
 
 if __name__ == "__main__":

@@ -22,12 +22,12 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 import torch
+from common import write_json  # benchmarks/, the script's own folder
 
 from relocfw import Relocalizer
 from relocfw.data.frames import read_images
@@ -203,9 +203,7 @@ def main() -> None:
     )
     low, high = report["ga_seed0_median_difference_95ci_m"]
     print(f"GA median position, shared - plain (seed 0), 95% CI: [{low:+.3f}, {high:+.3f}] m")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"written: {args.out}")
+    write_json(report, args.out)
 
 
 if __name__ == "__main__":

@@ -15,13 +15,12 @@ Prints a table, writes JSON.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
 
 import torch
-from rendered import render_views  # benchmarks/, the script's own folder
+from common import render_views, write_json  # benchmarks/, the script's own folder
 
 from relocfw.imaging import to_network_input
 from relocfw.loss import posenet_loss
@@ -112,9 +111,7 @@ def main() -> None:
     print(f"{'bare forward+backward':<24} {bare:>9.2f}")
     print(f"{'train_backbone':<24} {loop:>9.2f}")
     print(f"train_backbone reaches {loop / bare:.1%} of the bare rate")
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"written: {args.out}")
+    write_json(report, args.out)
 
 
 if __name__ == "__main__":

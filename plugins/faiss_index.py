@@ -13,6 +13,7 @@ Install with `pip install "relocfw[faiss]"` (faiss-cpu).
 from __future__ import annotations
 
 import importlib
+import logging
 from collections.abc import Iterator
 
 import numpy as np
@@ -28,6 +29,9 @@ CHUNK = 16384  # descriptors standardised and added at a time
 
 
 def import_faiss():
+    # faiss's loader logs at INFO every CPU variant it tries and misses (AVX512, AVX2),
+    # which under the CLI's logging reads like an error. Only its warnings matter here.
+    logging.getLogger("faiss.loader").setLevel(logging.WARNING)
     try:
         return importlib.import_module("faiss")
     except ImportError as error:

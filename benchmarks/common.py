@@ -1,9 +1,13 @@
-"""Views of the synthetic room at the paper's geometry, shared by the benchmarks."""
+"""What the benchmarks share: views of the synthetic room, writing their JSON."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 
+from relocfw.checkpoints import write_text_atomic
 from relocfw.data.room import Room, RoomRenderer
 from relocfw.data.synthetic import SyntheticSceneSpec, lap_poses, scene_laps
 from relocfw.geometry import pose_from_matrix
@@ -21,3 +25,10 @@ def render_views(
     matrices = lap_poses(lap, count, room)
     images = [renderer.render(matrix, width, height) for matrix in matrices]
     return images, [pose_from_matrix(matrix) for matrix in matrices]
+
+
+def write_json(report: dict, out: Path) -> None:
+    """Write a benchmark's report atomically (an earlier result is never half-replaced)."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(json.dumps(report, indent=2) + "\n", out)
+    print(f"written: {out}")

@@ -1,0 +1,75 @@
+"""The benchmark scripts still run and write their JSON (tiny sizes; numbers not checked)."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+def run_script(name: str, out: Path, *args: str) -> dict:
+    command = [sys.executable, str(BENCHMARKS / name), "--out", str(out), *args]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return json.loads(out.read_text())
+
+
+def test_query_cost(tmp_path):
+    report = run_script(
+        "query_cost.py",
+        tmp_path / "q.json",
+        "--queries",
+        "1",
+        "--map-images",
+        "4",
+        "--input-size",
+        "32",
+    )
+    rows = {(r["search"], r["scoring"]): r for r in report["rows"]}
+    assert rows["centre", "plain"]["network_passes"] == 1
+    assert rows["ga", "shared"]["network_passes"] < rows["ga", "plain"]["network_passes"]
+
+
+def test_training_throughput(tmp_path):
+    report = run_script(
+        "training_throughput.py",
+        tmp_path / "t.json",
+        "--steps",
+        "1",
+        "--rounds",
+        "1",
+        "--batch-size",
+        "2",
+        "--images",
+        "4",
+        "--input-size",
+        "32",
+    )
+    assert report["bare_images_per_second"] > 0 and report["train_images_per_second"] > 0
+
+
+def test_index_scale(tmp_path):
+    pytest.importorskip("faiss")
+    report = run_script(
+        "index_scale.py",
+        tmp_path / "i.json",
+        "--sizes",
+        "400",
+        "--dim",
+        "16",
+        "--queries",
+        "10",
+        "--nprobe",
+        "4",
+        "--ef-search",
+        "16",
+        "--pca-dim",
+        "8",
+    )
+    names = {r["index"] for r in report["rows"]}
+    assert "faiss flat (exact)" in names and "exhaustive (numpy float64)" in names
+    exact = [r for r in report["rows"] if r["index"] == "exhaustive (numpy float64)"]
+    assert exact[0]["recall_at_1"] == 1.0  # numpy and faiss agree on the nearest
