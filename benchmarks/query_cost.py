@@ -6,14 +6,13 @@ scoring (one trunk pass over the strip, see relocfw.window_pooling). Timing does
 depend on the weights, so the network is freshly initialised; the map is fitted on
 descriptors of rendered training views. Prints a table, writes JSON.
 
-    .venv/bin/python benchmarks/query_cost.py --queries 10 --out benchmarks/results/query_cost.json
+    .venv/bin/python benchmarks/query_cost.py --queries 20
 """
 
 from __future__ import annotations
 
 import argparse
 import platform
-import time
 from pathlib import Path
 
 import numpy as np
@@ -39,35 +38,42 @@ def main() -> None:
     backbone = PoseNet(input_size=args.input_size).eval()
     queries, _ = render_views(args.queries, -1)
     map_images, _ = render_views(args.map_images, 0)
-    rows = []
-    for name, crop, scoring in (
+    methods = (
         ("centre", CentreCrop(), "plain"),
         ("ga", GeneticCropSearch(), "plain"),
         ("sweep", SweepCrop(), "plain"),
         ("ga", GeneticCropSearch(), "shared"),
         ("sweep", SweepCrop(), "shared"),
-    ):
+    )
+    relocalizers = []
+    for _, crop, scoring in methods:
         index = KMeansIndex(k=min(40, args.map_images))
         relocalizer = Relocalizer(backbone, index, crop, scoring=scoring)
         relocalizer.fit(map_images)
         relocalizer.localize(queries[0])  # warm-up: allocator, thread pool
-        start = time.perf_counter()
-        answers = [relocalizer.localize(q) for q in queries]
-        seconds = (time.perf_counter() - start) / len(queries)
-        rows.append(
-            {
-                "search": name,
-                "scoring": scoring,
-                "ms_per_query": 1000 * seconds,
-                "crops_scored": float(np.mean([a.evaluations for a in answers])),
-                "network_passes": float(np.mean([a.network_passes for a in answers])),
-            }
-        )
+        relocalizers.append(relocalizer)
+    # Round robin, each query through every method in turn, and medians: a slow
+    # moment of the machine then lands on all methods alike instead of on one.
+    answers = [[] for _ in methods]
+    for query in queries:
+        for found, relocalizer in zip(answers, relocalizers, strict=True):
+            found.append(relocalizer.localize(query))
+    rows = [
+        {
+            "search": name,
+            "scoring": scoring,
+            "ms_per_query": 1000 * float(np.median([a.seconds for a in found])),
+            "mean_ms_per_query": 1000 * float(np.mean([a.seconds for a in found])),
+            "crops_scored": float(np.mean([a.evaluations for a in found])),
+            "network_passes": float(np.mean([a.network_passes for a in found])),
+        }
+        for (name, _, scoring), found in zip(methods, answers, strict=True)
+    ]
     centre = rows[0]["ms_per_query"]
     for row in rows:
         row["times_centre"] = row["ms_per_query"] / centre
     print(
-        f"{'search':<8} {'scoring':<8} {'ms/query':>9} {'crops':>6} {'passes':>7} {'x centre':>9}"
+        f"{'search':<8} {'scoring':<8} {'median ms':>9} {'crops':>6} {'passes':>7} {'x centre':>9}"
     )
     for row in rows:
         print(
