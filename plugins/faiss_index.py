@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import importlib
 import logging
-from collections.abc import Iterator
 
 import numpy as np
 import torch
@@ -22,10 +21,10 @@ import torch
 from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import SimilarityIndex
 from relocfw.options import integer_at_least
+from relocfw.standardise import ZScore, checked_descriptors, row_chunks
 
 KINDS = ("flat", "ivf", "hnsw")
 PRECISIONS = ("float32", "float16")
-CHUNK = 16384  # descriptors standardised and added at a time
 
 
 def import_faiss():
@@ -36,26 +35,6 @@ def import_faiss():
         return importlib.import_module("faiss")
     except ImportError as error:
         raise ConfigError('index=faiss needs faiss-cpu: pip install "relocfw[faiss]"') from error
-
-
-def chunks(count: int) -> Iterator[slice]:
-    for start in range(0, count, CHUNK):
-        yield slice(start, min(start + CHUNK, count))
-
-
-def checked(features: np.ndarray, dim: int | None = None) -> np.ndarray:
-    """[N, D] finite descriptors as given (float32 or float64: no copy of a large map)."""
-    features = np.asarray(features)
-    if features.dtype not in (np.float32, np.float64):
-        features = features.astype(np.float32)
-    if features.ndim != 2 or len(features) == 0:
-        raise DataError(f"expected a non-empty [N, D] descriptor array, got shape {features.shape}")
-    if dim is not None and features.shape[1] != dim:
-        raise DataError(f"descriptors have {features.shape[1]} dimensions, the map has {dim}")
-    for part in chunks(len(features)):
-        if not np.isfinite(features[part]).all():
-            raise DataError("descriptors contain NaN or infinity")
-    return features
 
 
 class FaissIndex(SimilarityIndex):
@@ -115,7 +94,7 @@ class FaissIndex(SimilarityIndex):
             )
 
     def _standardised(self, features: np.ndarray) -> np.ndarray:
-        return ((features - self.mean) / self.std).astype(np.float32)
+        return self.zscore(features).astype(np.float32)
 
     def _empty_index(self, dim: int):
         faiss = self.faiss
@@ -151,18 +130,9 @@ class FaissIndex(SimilarityIndex):
         return self._standardised(features[np.sort(rows)])
 
     def fit(self, features: np.ndarray) -> None:
-        features = checked(features)
+        features = checked_descriptors(features)
         self.check_map_size(len(features))
-        # Mean and spread in float64, chunk by chunk: no float64 copy of the whole map.
-        total = np.zeros(features.shape[1])
-        squares = np.zeros(features.shape[1])
-        for part in chunks(len(features)):
-            block = features[part].astype(np.float64)
-            total += block.sum(axis=0)
-            squares += (block * block).sum(axis=0)
-        self.mean = total / len(features)
-        std = np.sqrt(np.maximum(squares / len(features) - self.mean**2, 0.0))
-        self.std = np.where(std > 1e-12, std, 1.0)
+        self.zscore = ZScore().fit(features)
         dim = features.shape[1]
         index = self._empty_index(self.pca_dim or dim)
         if self.pca_dim:
@@ -171,7 +141,7 @@ class FaissIndex(SimilarityIndex):
         if not index.is_trained:  # PCA, IVF: faiss seeds its k-means itself (fixed seed)
             index.train(self._training_sample(features))
         self._reserve(index, len(features))
-        for part in chunks(len(features)):
+        for part in row_chunks(len(features)):
             index.add(self._standardised(features[part]))
         self.index = index
         self.dim = dim
@@ -221,22 +191,20 @@ class FaissIndex(SimilarityIndex):
     def state(self) -> dict[str, torch.Tensor]:
         blob = self.faiss.serialize_index(self.index)  # a uint8 numpy array of its own
         return {
-            "mean": torch.from_numpy(self.mean),
-            "std": torch.from_numpy(self.std),
+            **self.zscore.state(),
             "faiss_index": torch.from_numpy(blob),
         }
 
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
-        self.mean = state["mean"].double().numpy()
-        self.std = state["std"].double().numpy()
+        self.zscore = ZScore().load_state(state)
         self.index = self.faiss.deserialize_index(state["faiss_index"].numpy())
-        self.dim = len(self.mean)
+        self.dim = len(self.zscore.mean)
         self._configure_search()
 
     def _search(self, features: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         if not hasattr(self, "index"):
             raise DataError("the index is not fitted yet: call fit() first")
-        features = checked(features, self.dim)
+        features = checked_descriptors(features, self.dim)
         squared, indices = self.index.search(self._standardised(features), k)
         distances = np.sqrt(np.maximum(squared.astype(np.float64), 0.0))
         # IVF may find fewer than k in the cells it visits; faiss marks those -1.

@@ -219,7 +219,7 @@ class Relocalizer:
         # the same network input, so it is computed once.
         results: dict[tuple[int, int], tuple[float, NetworkAnswers]] = {}
         shared: dict[tuple[int, int], float] = {}  # scoring=shared: window -> distance
-        strip_maps: list[StripMaps] = []  # built on the first shared score, if any
+        strip_maps: StripMaps | None = None  # built on the first shared score, if any
 
         def evaluate(corners: list[tuple[int, int]]) -> None:
             new = list(dict.fromkeys(c for c in corners if c not in results))
@@ -234,12 +234,13 @@ class Relocalizer:
                 )
 
         def score_shared(corners: list[tuple[int, int]]) -> None:
+            nonlocal strip_maps
             new = list(dict.fromkeys(c for c in corners if c not in shared))
             if not new:
                 return
-            if not strip_maps:
-                strip_maps.append(self._strip_maps(strip))
-            distances = self._map_distance(self._shared_features(strip_maps[0], new))
+            if strip_maps is None:
+                strip_maps = self._strip_maps(strip)
+            distances = self._map_distance(self._shared_features(strip_maps, new))
             shared.update(zip(new, (float(d) for d in distances), strict=True))
 
         def distance(crops: Sequence[Crop]) -> np.ndarray:
@@ -270,5 +271,5 @@ class Relocalizer:
             seconds=time.perf_counter() - start,
             position_spread=float(answer.position_spread),
             orientation_spread_deg=float(answer.orientation_spread_deg),
-            network_passes=len(results) + (strip_passes if strip_maps else 0.0),
+            network_passes=len(results) + (0.0 if strip_maps is None else strip_passes),
         )

@@ -2,23 +2,39 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 import torch
 
 from relocfw.errors import DataError
+
+ROWS_AT_A_TIME = 16384  # chunk size for work over a whole map (10^6 rows is 8 GB)
+
+
+def row_chunks(count: int) -> Iterator[slice]:
+    """Slices of at most ROWS_AT_A_TIME rows covering 0..count."""
+    for start in range(0, count, ROWS_AT_A_TIME):
+        yield slice(start, min(start + ROWS_AT_A_TIME, count))
 
 
 class ZScore:
     """Per-dimension standardisation fitted on the map's descriptors.
 
     Dimensions that never vary (dead ReLU units) keep a unit scale instead of
-    dividing by zero.
+    dividing by zero. Fitting goes chunk by chunk in float64 (mean, then spread about
+    it), so a float32 map of any size is never copied whole.
     """
 
     def fit(self, features: np.ndarray) -> ZScore:
-        features = check_features(features)
-        self.mean = features.mean(axis=0)
-        std = features.std(axis=0)
+        features = checked_descriptors(features)
+        count = len(features)
+        self.mean = sum(features[part].sum(axis=0, dtype=np.float64) for part in row_chunks(count))
+        self.mean = self.mean / count
+        squares = sum(
+            np.square(features[part] - self.mean).sum(axis=0) for part in row_chunks(count)
+        )
+        std = np.sqrt(squares / count)
         self.std = np.where(std > 1e-12, std, 1.0)
         return self
 
@@ -34,16 +50,28 @@ class ZScore:
         return (np.asarray(features, dtype=np.float64) - self.mean) / self.std
 
 
-def check_features(features: np.ndarray, dim: int | None = None) -> np.ndarray:
-    """[N, D] finite float64 descriptors, or a DataError saying what is wrong."""
-    features = np.asarray(features, dtype=np.float64)
+def checked_descriptors(features: np.ndarray, dim: int | None = None) -> np.ndarray:
+    """[N, D] finite descriptors, float32 or float64 as given (no copy of a large map).
+
+    Raises:
+        DataError: saying what is wrong (shape, dimensions, NaN or infinity).
+    """
+    features = np.asarray(features)
+    if features.dtype not in (np.float32, np.float64):
+        features = features.astype(np.float64)
     if features.ndim != 2 or len(features) == 0:
         raise DataError(f"expected a non-empty [N, D] descriptor array, got shape {features.shape}")
     if dim is not None and features.shape[1] != dim:
         raise DataError(f"descriptors have {features.shape[1]} dimensions, the map has {dim}")
-    if not np.all(np.isfinite(features)):
-        raise DataError("descriptors contain NaN or infinity")
+    for part in row_chunks(len(features)):
+        if not np.isfinite(features[part]).all():
+            raise DataError("descriptors contain NaN or infinity")
     return features
+
+
+def check_features(features: np.ndarray, dim: int | None = None) -> np.ndarray:
+    """[N, D] finite float64 descriptors, or a DataError saying what is wrong."""
+    return checked_descriptors(np.asarray(features, dtype=np.float64), dim)
 
 
 def k_nearest(queries: np.ndarray, points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
