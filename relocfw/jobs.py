@@ -91,7 +91,9 @@ def train_or_reuse(
         }
     )
     checkpoint = Path(cache_dir).expanduser() / "checkpoints" / f"{key}.pt"
-    data = TrainingImages(images, [f.pose for f in frames], backbone.input_size)
+    data = TrainingImages(
+        images, [f.pose for f in frames], backbone.input_size, settings.crop_scale
+    )
     run = train_backbone(backbone, data, settings, checkpoint, key, device, quiet, world)
     return checkpoint, run
 

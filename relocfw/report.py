@@ -11,7 +11,8 @@ COLUMNS = (
     ("median_orientation_deg", "med ori (deg)", "{:.2f}"),
     ("mean_orientation_deg", "mean ori (deg)", "{:.2f}"),
     ("share_within_0.5m_15deg", "<0.5m & <15deg", "{:.1%}"),
-    ("mean_seconds_per_query", "ms/query", "{:.1f}"),
+    ("median_seconds_per_query", "med ms/query", "{:.1f}"),
+    ("mean_seconds_per_query", "mean ms/query", "{:.1f}"),
     ("mean_crops_scored", "crops/query", "{:.1f}"),
     ("mean_network_passes", "passes/query", "{:.1f}"),
 )
@@ -25,7 +26,7 @@ def format_table(summaries: Sequence[dict[str, Any]]) -> str:
         cells = [str(summary["method"])]
         for key, _, fmt in COLUMNS:
             value = summary[key]
-            if key == "mean_seconds_per_query":
+            if key.endswith("_seconds_per_query"):
                 value *= 1000.0
             cells.append(fmt.format(value))
         rows.append(cells)

@@ -45,6 +45,11 @@ class TrainSettings:
         learned_init: initial (s_x, s_q) of the learned weighting.
         auxiliary_weights: loss weights of the two auxiliary heads.
         random_crops: train on a random square crop of each image (paper), not the centre.
+        crop_scale: the image's short side is scaled to crop_scale x the network input
+            before a random input-sized crop is cut. 1.0: the crop is the whole short
+            side and moves along the long axis only, as at query time. 256/224
+            (1.142857): PoseNet's scheme (224 crops of the image at a 256-pixel short
+            side), so crops also move along the short axis and see 87.5% of it.
         checkpoint_every: steps between resumable checkpoints.
         seed: initialisation and batch order.
     """
@@ -61,13 +66,14 @@ class TrainSettings:
     learned_init: tuple[float, float] = (0.0, -3.0)
     auxiliary_weights: tuple[float, float] = (0.3, 0.3)
     random_crops: bool = True
+    crop_scale: float = 1.0
     checkpoint_every: int = 500
     seed: int = 0
 
     def validate(self) -> None:
         for key in ("iterations", "batch_size", "checkpoint_every"):
             integer_at_least(f"train.{key}", getattr(self, key), 1)
-        for key in ("lr", "momentum", "weight_decay", "beta"):
+        for key in ("lr", "momentum", "weight_decay", "beta", "crop_scale"):
             real_number(f"train.{key}", getattr(self, key))
         if len(self.auxiliary_weights) != 2:
             raise ConfigError("train.auxiliary_weights must hold two numbers (aux1, aux2)")
@@ -87,6 +93,11 @@ class TrainSettings:
             raise ConfigError(f"train.lr must be positive, got {self.lr}")
         if self.beta < 0:
             raise ConfigError(f"train.beta must be >= 0, got {self.beta}")
+        if not 1.0 <= self.crop_scale <= 4.0:
+            raise ConfigError(
+                f"train.crop_scale must be in [1, 4] (short side over the network input), "
+                f"got {self.crop_scale}"
+            )
 
 
 @dataclass(frozen=True)
@@ -105,10 +116,17 @@ class TrainingImages:
     the data side costs microseconds against the network's milliseconds.
     """
 
-    def __init__(self, images: Sequence[np.ndarray], poses: Sequence[Pose], input_size: int):
+    def __init__(
+        self,
+        images: Sequence[np.ndarray],
+        poses: Sequence[Pose],
+        input_size: int,
+        crop_scale: float = 1.0,
+    ):
         if len(images) == 0:
             raise DataError("the training split is empty")
         self.images = images
+        self.crop_scale = float(crop_scale)
         self.positions = torch.tensor(np.stack([p.position for p in poses]), dtype=torch.float32)
         self.quaternions = torch.tensor(
             np.stack([p.quaternion for p in poses]), dtype=torch.float32
@@ -118,7 +136,10 @@ class TrainingImages:
     @cached_property
     def strips(self) -> list[Strip]:
         # Built on the first batch, not up front: a reused checkpoint never needs them.
-        return [Strip(image, self.input_size) for image in self.images]
+        # Strips at crop_scale x the input: windows of input size then see 1/crop_scale
+        # of the short side (TrainSettings.crop_scale).
+        side = max(self.input_size, round(self.input_size * self.crop_scale))
+        return [Strip(image, side) for image in self.images]
 
     def __len__(self) -> int:
         return len(self.images)

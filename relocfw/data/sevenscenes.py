@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -65,7 +66,11 @@ def read_pose_file(path: Path) -> np.ndarray:
 
 
 def load_sevenscenes(
-    root: str | Path, scene: str | None, split: str, on_error: OnError | None = None
+    root: str | Path,
+    scene: str | None,
+    split: str,
+    on_error: OnError | None = None,
+    sequences: Sequence[int] | None = None,
 ) -> list[Frame]:
     """Frames of one split, in sequence then frame order.
 
@@ -74,16 +79,22 @@ def load_sevenscenes(
         scene: scene name such as "chess"; None when `root` is the scene folder.
         split: "train" or "test".
         on_error: what to do with a bad pose file (default: fail).
+        sequences: sequence numbers to use instead of the split file's, e.g. to hold
+            out a validation block of the training sequences.
     """
     on_error = on_error or OnError()
     if split not in SPLIT_FILES:
         raise ConfigError(f"split must be 'train' or 'test', got {split!r}")
     folder = scene_folder(root, scene)
+    source = f"dataset.{split}_sequences"
+    if sequences is None:
+        source = str(folder / SPLIT_FILES[split])
+        sequences = read_split(folder / SPLIT_FILES[split])
     frames = []
-    for sequence in read_split(folder / SPLIT_FILES[split]):
+    for sequence in sequences:
         seq_dir = folder / f"seq-{sequence:02d}"
         if not seq_dir.is_dir():
-            raise DataError(f"{folder / SPLIT_FILES[split]}: sequence folder not found: {seq_dir}")
+            raise DataError(f"{source}: sequence folder not found: {seq_dir}")
         images = sorted(seq_dir.glob("frame-*.color.png")) or sorted(
             seq_dir.glob("frame-*.color.jpg")
         )
@@ -108,13 +119,44 @@ class SevenScenes:
         root: the folder holding scene folders (or the scene folder, with scene=None).
         scene: scene name, e.g. "chess".
         on_error: "fail" or "skip" (bad files left out and listed).
+        train_sequences: sequence numbers that replace TrainSplit.txt (None: the file).
+        test_sequences: sequence numbers that replace TestSplit.txt (None: the file).
     """
 
     def __init__(
-        self, root: str | None = None, scene: str | None = None, on_error: str = "fail"
+        self,
+        root: str | None = None,
+        scene: str | None = None,
+        on_error: str = "fail",
+        train_sequences: Sequence[int] | None = None,
+        test_sequences: Sequence[int] | None = None,
     ) -> None:
         self.folder = scene_folder(root, scene)
         self.on_error = OnError(on_error)
+        self.sequences = {
+            "train": checked_sequences("train_sequences", train_sequences),
+            "test": checked_sequences("test_sequences", test_sequences),
+        }
+        train, test = self.sequences["train"], self.sequences["test"]
+        if train is not None and test is not None and set(train) & set(test):
+            raise ConfigError(
+                f"dataset.train_sequences and dataset.test_sequences share "
+                f"{sorted(set(train) & set(test))}: a test frame would be in the map"
+            )
 
     def frames(self, split: str) -> list[Frame]:
-        return load_sevenscenes(self.folder, None, split, self.on_error)
+        return load_sevenscenes(self.folder, None, split, self.on_error, self.sequences.get(split))
+
+
+def checked_sequences(key: str, values: Sequence[int] | None) -> list[int] | None:
+    """A non-empty list of positive sequence numbers, or None (use the split file)."""
+    if values is None:
+        return None
+    if isinstance(values, (str, int)) or not values:
+        raise ConfigError(f"dataset.{key} must be a non-empty list such as [1, 3], got {values!r}")
+    numbers = []
+    for value in values:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ConfigError(f"dataset.{key}: sequence numbers are integers >= 1, got {value!r}")
+        numbers.append(value)
+    return numbers
