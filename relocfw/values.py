@@ -17,9 +17,28 @@ class Crop:
     size: int
 
 
+def on_one_hemisphere(quaternion: np.ndarray) -> np.ndarray:
+    """The one of q and -q (the same rotation) with w > 0, or, where w = 0, whose first
+    non-zero component is positive.
+
+    A pose regressor's loss compares quaternions as 4-vectors, so q and -q would be
+    two different targets for one rotation; trajectories from SLAM systems (ORB-SLAM2,
+    Eigen) flip sign freely. Every `Pose` is put on this hemisphere when it is made.
+    """
+    q = np.asarray(quaternion, dtype=np.float64)
+    nonzero = np.flatnonzero(q)
+    if len(nonzero) and q[nonzero[0]] < 0:
+        return -q
+    return q
+
+
 @dataclass(frozen=True)
 class Pose:
-    """Camera-to-world pose: position in metres, unit quaternion (w, x, y, z)."""
+    """Camera-to-world pose: position in metres, unit quaternion (w, x, y, z).
+
+    Convention: the quaternion is kept on one hemisphere (`on_one_hemisphere`: w > 0),
+    so q and -q, which are the same rotation, become the same pose.
+    """
 
     position: np.ndarray
     quaternion: np.ndarray
@@ -27,7 +46,7 @@ class Pose:
     def __post_init__(self) -> None:
         # Copies as float64 so a caller's later edits cannot change a frozen pose.
         position = np.array(self.position, dtype=np.float64).reshape(3)
-        quaternion = np.array(self.quaternion, dtype=np.float64).reshape(4)
+        quaternion = on_one_hemisphere(np.array(self.quaternion, dtype=np.float64).reshape(4))
         position.setflags(write=False)
         quaternion.setflags(write=False)
         object.__setattr__(self, "position", position)

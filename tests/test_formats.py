@@ -1,6 +1,9 @@
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from relocfw.data.cambridge import CambridgeLandmarks
 from relocfw.data.folder import PoseFolder
@@ -9,6 +12,8 @@ from relocfw.data.tum import TumDataset, associate, read_trajectory
 from relocfw.errors import DataError
 from relocfw.geometry import checked_quaternion, quaternion_to_matrix
 from relocfw.imaging import Strip, read_rgb
+from relocfw.training import TrainingImages
+from relocfw.values import Pose
 from tests.formats import assert_same_poses, write_cambridge, write_folder, write_tum
 
 
@@ -89,3 +94,44 @@ def test_skip_policy_collects_messages(tiny_scene, tmp_path):
     assert len(frames) == 7 and dataset.unmatched == 1  # its image now has no pose
     with pytest.raises(Exception, match="on_error"):
         OnError("ignore")
+
+
+def flip_every_other_quaternion(trajectory: Path) -> None:
+    """Negate (qx, qy, qz, qw) on every other line: the same rotations, as SLAM writes them."""
+    lines = trajectory.read_text().splitlines()
+    out, poses = [], 0
+    for line in lines:
+        if line.startswith("#"):
+            out.append(line)
+            continue
+        values = line.split()
+        if poses % 2:
+            values[4:8] = [f"{-float(v):.9f}" for v in values[4:8]]
+        poses += 1
+        out.append(" ".join(values))
+    trajectory.write_text("\n".join(out) + "\n")
+
+
+def test_tum_quaternion_sign_flips_give_the_same_training_targets(tiny_scene, tmp_path):
+    write_tum(tiny_scene, tmp_path / "plain")
+    write_tum(tiny_scene, tmp_path / "flipped")
+    for lap in ("lap1", "lap2"):
+        flip_every_other_quaternion(tmp_path / "flipped" / lap / "groundtruth.txt")
+    targets = []
+    for name in ("plain", "flipped"):
+        frames = TumDataset(str(tmp_path / name), ["lap1", "lap2"], ["lap3"]).frames("train")
+        data = TrainingImages([None] * len(frames), [f.pose for f in frames], 32)
+        targets.append((data.positions, data.quaternions))
+    flipped_lines = (tmp_path / "flipped" / "lap1" / "groundtruth.txt").read_text().splitlines()
+    assert float(flipped_lines[2].split()[-1]) < 0  # the file really holds w < 0 lines
+    assert torch.equal(targets[0][0], targets[1][0])
+    assert torch.equal(targets[0][1], targets[1][1])
+    assert bool((targets[1][1][:, 0] > 0).all())
+
+
+def test_every_pose_is_put_on_the_w_positive_hemisphere():
+    q = np.array([-0.5, 0.5, -0.5, 0.5])
+    assert np.array_equal(Pose([0, 0, 0], q).quaternion, -q)
+    assert np.array_equal(Pose([0, 0, 0], -q).quaternion, -q)
+    # w = 0 (a half turn): the first non-zero component decides.
+    assert np.array_equal(Pose([0, 0, 0], [0.0, 0.0, -1.0, 0.0]).quaternion, [0, 0, 1, 0])
