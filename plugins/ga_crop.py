@@ -1,9 +1,16 @@
 """The paper's genetic algorithm over the crop offset.
 
-A chromosome is the offset in n bits, 2^(n-1) < span <= 2^n, decoded as
-round(dec / (2^n - 1) * span), so all-zeros and all-ones reach both edges.
+A chromosome is the offset in n bits, 2^(n-1) <= span < 2^n (the paper's
+2^(n-1) < span < 2^n, with the larger n where span is a power of two), decoded as
+round(dec / (2^n - 1) * span): all-zeros and all-ones reach both edges and, since
+2^n - 1 >= span, every offset in between is the decode of some chromosome.
 Fitness is exp(-distance); parents are drawn by roulette, paired for single-point
 crossover with probability Pc, and each bit flips with probability Pm.
+
+Each query draws its own random stream from the search's seed and the query's
+`query_seed` (a fingerprint of the image, see relocfw.interfaces.query_seed): a test
+split is many independent GA runs, not one run repeated, and the same image still
+gives the same crop.
 """
 
 from __future__ import annotations
@@ -12,21 +19,32 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from relocfw.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span
+from relocfw.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span, query_seed
 from relocfw.options import integer_at_least, probability
 from relocfw.values import Crop
 
 
 def chromosome_bits(span: int) -> int:
-    """Bits needed to address offsets 0..span: the smallest n with 2^n >= span."""
-    return max(1, int(np.ceil(np.log2(max(span, 1)))))
+    """Bits n with 2^(n-1) <= span < 2^n, so 2^n - 1 >= span and no offset is unreachable.
+
+    A span of 256 (1024 x 768 images) needs 9 bits: with 8, 255 codes cannot reach
+    257 offsets and some, the centre among them, could never be chosen.
+    """
+    return max(1, int(span).bit_length())
+
+
+def offset_of(values: np.ndarray | int, bits: int, span: int) -> np.ndarray:
+    """Offsets of chromosomes given as integers: round(value / (2^bits - 1) * span).
+
+    np.rint rounds halves to even, as Python's round does.
+    """
+    return np.rint(np.asarray(values) / (2**bits - 1) * span).astype(np.int64)
 
 
 def decode(chromosome: Sequence[int], span: int) -> int:
     """Offset in pixels of a binary chromosome (most significant bit first)."""
-    bits = len(chromosome)
     value = int("".join(str(int(b)) for b in chromosome), 2)
-    return round(value / (2**bits - 1) * span)
+    return int(offset_of(value, len(chromosome), span))
 
 
 def roulette(fitness: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
@@ -46,7 +64,8 @@ class GeneticCropSearch(CropSearch):
         mutation: probability Pm that each bit flips (paper: 0.1).
         iterations: generations bred after the initial one (paper: 3), so at most
             population * (iterations + 1) crops are scored.
-        seed: the search's own random stream; the same image gives the same crop.
+        seed: the search's seed; each query's stream is drawn from it and the query's
+            `query_seed`, so the same image gives the same crop.
     """
 
     def __init__(
@@ -67,8 +86,9 @@ class GeneticCropSearch(CropSearch):
         _, span = crop_side_and_span(width, height)
         if span == 0:
             return crop_at(0, width, height)
-        rng = np.random.default_rng(self.seed)
+        rng = np.random.default_rng([self.seed, query_seed(distance)])
         bits = chromosome_bits(span)
+        weights = 2 ** np.arange(bits - 1, -1, -1)  # most significant bit first
         scores: dict[int, float] = {}  # offset -> distance; an offset is scored once
 
         def score(offsets: list[int]) -> np.ndarray:
@@ -80,7 +100,7 @@ class GeneticCropSearch(CropSearch):
 
         chromosomes = rng.integers(0, 2, size=(self.population, bits))
         for generation in range(self.iterations + 1):
-            distances = score([decode(c, span) for c in chromosomes])
+            distances = score(offset_of(chromosomes @ weights, bits, span).tolist())
             if generation == self.iterations:
                 break
             # exp(-(d - min d)) has the same proportions as exp(-d) without underflow.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import cv2
@@ -65,6 +66,18 @@ class Strip:
     def centre_crop(self) -> Crop:
         _, span = crop_side_and_span(self.width, self.height)
         return crop_at(span // 2, self.width, self.height)
+
+
+def image_fingerprint(image: np.ndarray) -> int:
+    """A 64-bit integer that names an image by its pixels (shape included).
+
+    Crop searches seed their per-query random stream from it: the same image always
+    gets the same stream, different images independent ones.
+    """
+    pixels = np.ascontiguousarray(image)
+    digest = hashlib.blake2b(str(pixels.shape).encode(), digest_size=8)
+    digest.update(pixels.tobytes())
+    return int.from_bytes(digest.digest(), "little")
 
 
 def to_network_input(batch: torch.Tensor) -> torch.Tensor:

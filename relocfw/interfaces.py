@@ -11,7 +11,22 @@ import torch
 from relocfw.values import Crop, PoseOutput
 
 CropDistance = Callable[[Sequence[Crop]], np.ndarray]
-"""Scores a batch of crops in one forward pass: [n] distances to the map, lower is closer."""
+"""Scores a batch of crops in one forward pass: [n] distances to the map, lower is closer.
+
+The pipeline's distance also carries `query_seed`, an integer fingerprint of the query
+image; read it with `query_seed(distance)`.
+"""
+
+
+def query_seed(distance: CropDistance) -> int:
+    """Seed material of the query being searched, for searches that draw random numbers.
+
+    Mix it with the search's own seed (e.g. `np.random.default_rng([seed,
+    query_seed(distance)])`): every query then gets its own stream, so the queries of a
+    test split are independent runs, while the same image still gives the same crop.
+    0 when the caller's `distance` is a plain function that carries none.
+    """
+    return int(getattr(distance, "query_seed", 0))
 
 
 class Backbone(torch.nn.Module, ABC):
@@ -113,7 +128,11 @@ class CropSearch(ABC):
 
     @abstractmethod
     def search(self, width: int, height: int, distance: CropDistance) -> Crop:
-        """Return the chosen crop; `distance` scores many crops per call."""
+        """Return the chosen crop; `distance` scores many crops per call.
+
+        A search that draws random numbers seeds them from its own seed and
+        `query_seed(distance)`, so each query is searched independently.
+        """
 
 
 def crop_side_and_span(width: int, height: int) -> tuple[int, int]:

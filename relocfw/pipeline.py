@@ -13,8 +13,8 @@ from threadpoolctl import ThreadpoolController
 
 from relocfw.errors import ConfigError, DataError
 from relocfw.geometry import mean_quaternion
-from relocfw.imaging import Strip, to_network_input
-from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
+from relocfw.imaging import Strip, image_fingerprint, to_network_input
+from relocfw.interfaces import Backbone, CropDistance, CropSearch, SimilarityIndex
 from relocfw.progress import Progress
 from relocfw.values import Crop, Localization, Pose
 from relocfw.window_pooling import StripMaps
@@ -30,6 +30,21 @@ class NetworkAnswers(NamedTuple):
     features: np.ndarray  # [n, D]
     position_spread: np.ndarray  # [n], NaN unless the backbone samples
     orientation_spread_deg: np.ndarray  # [n]
+
+
+class QueryDistance:
+    """The CropDistance a search gets: scores crops and carries the query's seed.
+
+    `query_seed` (the image's fingerprint) lets a randomised search give every query
+    its own stream (see relocfw.interfaces.query_seed).
+    """
+
+    def __init__(self, score: CropDistance, query_seed: int) -> None:
+        self.score = score
+        self.query_seed = query_seed
+
+    def __call__(self, crops: Sequence[Crop]) -> np.ndarray:
+        return self.score(crops)
 
 
 def as_numpy(tensor: torch.Tensor | None, count: int) -> np.ndarray:
@@ -251,7 +266,8 @@ class Relocalizer:
             evaluate(corners)
             return np.array([results[c][0] for c in corners])
 
-        chosen = self.crop.search(strip.width, strip.height, distance)
+        query = QueryDistance(distance, image_fingerprint(image))
+        chosen = self.crop.search(strip.width, strip.height, query)
         corner = strip.window(chosen)
         evaluate([corner])
         best_distance, answer = results[corner]

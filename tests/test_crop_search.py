@@ -1,9 +1,21 @@
 import numpy as np
 import pytest
+import torch
 
 from relocfw.errors import ConfigError
+from relocfw.imaging import image_fingerprint
+from relocfw.interfaces import CropSearch, crop_at, query_seed
+from relocfw.pipeline import QueryDistance, Relocalizer
 from relocfw.plugins.centre_crop import CentreCrop
-from relocfw.plugins.ga_crop import GeneticCropSearch, chromosome_bits, decode
+from relocfw.plugins.exhaustive_index import ExhaustiveIndex
+from relocfw.plugins.ga_crop import (
+    GeneticCropSearch,
+    chromosome_bits,
+    decode,
+    offset_of,
+    roulette,
+)
+from relocfw.plugins.posenet import PoseNet
 from relocfw.plugins.sweep_crop import SweepCrop
 from relocfw.values import Crop
 
@@ -29,11 +41,96 @@ def bowl(minimum, scale=5.0):
 
 
 def test_chromosome_bits_follow_the_paper():
-    # 2^(n-1) < w - h <= 2^n: 640 x 480 gives w - h = 160 and 8 bits.
+    # 2^(n-1) < w - h < 2^n: 640 x 480 gives w - h = 160 and 8 bits; where the span
+    # is a power of two, the n with 2^n > span (1024 x 768: 256 -> 9 bits).
     assert chromosome_bits(160) == 8
-    assert chromosome_bits(128) == 7
+    assert chromosome_bits(127) == 7
+    assert chromosome_bits(128) == 8
     assert chromosome_bits(129) == 8
+    assert chromosome_bits(255) == 8
+    assert chromosome_bits(256) == 9
     assert chromosome_bits(1) == 1
+
+
+def test_every_offset_is_the_decode_of_some_chromosome():
+    for span in range(1, 2001):
+        bits = chromosome_bits(span)
+        reachable = np.unique(offset_of(np.arange(2**bits), bits, span))
+        assert np.array_equal(reachable, np.arange(span + 1)), f"span {span}, {bits} bits"
+    # offset_of is the bit-string decode, value for value.
+    for span, bits in ((160, 8), (256, 9), (7, 3)):
+        for value in range(2**bits):
+            chromosome = [int(b) for b in format(value, f"0{bits}b")]
+            assert decode(chromosome, span) == offset_of(value, bits, span)
+
+
+def test_1024_wide_images_can_choose_the_centre_crop():
+    # 1024 x 768: span 256, centre offset 128; with 8 bits no chromosome decoded to it.
+    bits = chromosome_bits(256)
+    assert 128 in set(offset_of(np.arange(2**bits), bits, 256).tolist())
+
+
+def test_roulette_draws_in_proportion_to_fitness():
+    fitness = np.array([0.0, 1.0, 2.0, 3.0, 4.0])
+    draws = roulette(fitness, 50_000, np.random.default_rng(0))
+    shares = np.bincount(draws, minlength=5) / len(draws)
+    assert shares[0] == 0  # no fitness, never a parent
+    # Binomial standard error at 50 000 draws is at most 0.0023.
+    assert np.allclose(shares, fitness / fitness.sum(), atol=0.01)
+
+
+def test_ga_beats_random_sampling_with_the_same_budget():
+    # On a unimodal distance, selection by fitness should concentrate the search near
+    # the minimum: over many seeds and minima, the GA's answer is closer than the best
+    # of as many distinct offsets drawn at random. A GA that ignores fitness is not.
+    ga_errors, random_errors = [], []
+    for seed in range(300):
+        minimum = (seed * 37) % 161
+        distance = Recorder(bowl(minimum))
+        crop = GeneticCropSearch(seed=seed).search(640, 480, distance)
+        ga_errors.append(abs(crop.x - minimum))
+        budget = len(set(distance.scored))
+        sample = np.random.default_rng(10_000 + seed).choice(161, size=budget, replace=False)
+        random_errors.append(np.abs(sample - minimum).min())
+    assert np.mean(ga_errors) < 0.8 * np.mean(random_errors)
+
+
+def test_each_query_gets_its_own_stream_and_the_same_query_the_same_one():
+    def first_generation(query_seed):
+        distance = Recorder(bowl(50))
+        GeneticCropSearch(seed=3).search(640, 480, QueryDistance(distance, query_seed))
+        return distance.calls[0]
+
+    assert first_generation(11) == first_generation(11)
+    assert first_generation(11) != first_generation(12)
+    # The search's own seed still matters for a fixed query.
+    distance_a, distance_b = Recorder(bowl(50)), Recorder(bowl(50))
+    GeneticCropSearch(seed=1).search(640, 480, QueryDistance(distance_a, 11))
+    GeneticCropSearch(seed=2).search(640, 480, QueryDistance(distance_b, 11))
+    assert distance_a.calls[0] != distance_b.calls[0]
+
+
+class SeedRecorder(CropSearch):
+    def __init__(self):
+        self.seeds = []
+
+    def search(self, width, height, distance):
+        self.seeds.append(query_seed(distance))
+        return crop_at(0, width, height)
+
+
+def test_the_pipeline_hands_each_image_its_fingerprint_as_query_seed():
+    torch.manual_seed(0)
+    backbone = PoseNet(input_size=32, width=0.0625, feature_dim=16)
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, size=(36, 48, 3), dtype=np.uint8) for _ in range(3)]
+    search = SeedRecorder()
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), search)
+    relocalizer.fit(images)
+    for image in [images[0], images[1], images[0].copy()]:
+        relocalizer.localize(image)
+    assert search.seeds[0] == search.seeds[2] == image_fingerprint(images[0])
+    assert search.seeds[1] == image_fingerprint(images[1]) != search.seeds[0]
 
 
 def test_decode_reaches_both_edges():
