@@ -22,8 +22,13 @@ from relocfw.plugins.googlenet import ConvBnRelu, GoogLeNetTrunk, scaled
 from relocfw.pose_head import PoseHead, PoseRegressor
 from relocfw.values import PoseOutput
 
+# Input normalisation of a network trained here from scratch: ImageNet's statistics.
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
+# torchvision's ImageNet GoogLeNet was trained on (x - 0.5) / 0.5 (its `transform_input`
+# turns ImageNet-normalised input back into that), so its weights expect exactly that.
+TORCHVISION_GOOGLENET_MEAN = (0.5, 0.5, 0.5)
+TORCHVISION_GOOGLENET_STD = (0.5, 0.5, 0.5)
 # torchvision modules with no counterpart here: the ImageNet classifiers.
 DROPPED_PREFIXES = ("fc.", "aux1.fc2.", "aux2.fc2.")
 
@@ -82,8 +87,10 @@ class PoseNet(Backbone):
         self.aux2 = AuxiliaryHead(self.trunk.aux_channels[1], width)
         self.head = PoseHead(self.trunk.out_channels, self.feature_dim, dropout)
         self.mc_samples = integer_at_least("mc_samples", mc_samples, 0)
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        # Persistent: the normalisation belongs to the weights, so it travels with every
+        # checkpoint and model file (a rebuilt model never reloads the weights file).
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1))
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1))
         if weights:
             if width != 1.0:
                 raise ConfigError("backbone.weights needs width=1.0 (ImageNet GoogLeNet)")
@@ -117,7 +124,8 @@ def torchvision_to_posenet_key(key: str) -> str | None:
 
 
 def load_imagenet_weights(model: PoseNet, path: Path) -> None:
-    """Copy a torchvision GoogLeNet state_dict into the trunk and auxiliary layers.
+    """Copy a torchvision GoogLeNet state_dict into the trunk and auxiliary layers, and
+    switch the input normalisation to the (x - 0.5) / 0.5 those weights were trained on.
 
     Every trunk parameter must be provided with the right shape; anything missing is a
     wrong file, not something to start from random silently.
@@ -148,3 +156,6 @@ def load_imagenet_weights(model: PoseNet, path: Path) -> None:
             f"e.g. {missing[0]!r} (expected torchvision's googlenet key layout)"
         )
     model.load_state_dict(mapped, strict=False)
+    with torch.no_grad():
+        model.mean.copy_(torch.tensor(TORCHVISION_GOOGLENET_MEAN).view(1, 3, 1, 1))
+        model.std.copy_(torch.tensor(TORCHVISION_GOOGLENET_STD).view(1, 3, 1, 1))

@@ -18,7 +18,7 @@ from relocfw.errors import DataError
 from relocfw.pipeline import Relocalizer
 from relocfw.values import Pose
 
-MODEL_FORMAT = 1
+MODEL_FORMAT = 2  # 2: PoseNet input normalisation saved with the weights
 MODEL_KIND = "relocfw-model"
 
 

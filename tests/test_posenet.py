@@ -119,3 +119,33 @@ def test_bad_options():
         PoseNet(input_size=8)
     with pytest.raises(ConfigError, match="dropout"):
         PoseNet(input_size=32, dropout=1.0)
+
+
+def trunk_input(model, images):
+    """What the trunk's first convolution receives for `images`."""
+    seen = []
+    handle = model.trunk.register_forward_pre_hook(lambda _, args: seen.append(args[0]))
+    model.eval()
+    with torch.no_grad():
+        model(images)
+    handle.remove()
+    return seen[0]
+
+
+def test_imagenet_googlenet_weights_get_the_input_they_were_trained_on(tmp_path):
+    path = tmp_path / "googlenet.pth"
+    torch.save(torchvision_layout_state(PoseNet(input_size=64)), path)
+    images = torch.rand(2, 3, 64, 64)
+    pretrained = PoseNet(input_size=64, weights=str(path))
+    # torchvision's GoogLeNet: transform_input maps ImageNet-normalised input to
+    # (x - 0.5) / 0.5, i.e. the weights were trained on 2x - 1 of [0, 1] pixels.
+    assert torch.allclose(trunk_input(pretrained, images), images * 2 - 1, atol=1e-6)
+    scratch = PoseNet(input_size=64)
+    mean = torch.tensor([0.485, 0.456, 0.406]).view(1, 3, 1, 1)
+    std = torch.tensor([0.229, 0.224, 0.225]).view(1, 3, 1, 1)
+    assert torch.allclose(trunk_input(scratch, images), (images - mean) / std, atol=1e-6)
+    # The normalisation travels with the weights: a model rebuilt without the weights
+    # file (as model files and checkpoints do) gets it from the state_dict.
+    rebuilt = PoseNet(input_size=64)
+    rebuilt.load_state_dict(pretrained.state_dict())
+    assert torch.allclose(trunk_input(rebuilt, images), images * 2 - 1, atol=1e-6)
