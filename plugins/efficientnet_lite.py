@@ -60,6 +60,7 @@ class EfficientNetLite0(Backbone):
         if not 0 <= probability("dropout", dropout) < 1:
             raise ConfigError(f"dropout must be in [0, 1), got {dropout}")
         self.mc_samples = integer_at_least("mc_samples", mc_samples, 0)
+        self.pretrained = bool(pretrained)
         architecture = import_optional("efficientnet_lite_pytorch")
         self.trunk = architecture.EfficientNet.from_name("efficientnet-lite0")
         if pretrained:

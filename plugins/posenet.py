@@ -87,6 +87,7 @@ class PoseNet(Backbone):
         self.aux2 = AuxiliaryHead(self.trunk.aux_channels[1], width)
         self.head = PoseHead(self.trunk.out_channels, self.feature_dim, dropout)
         self.mc_samples = integer_at_least("mc_samples", mc_samples, 0)
+        self.pretrained = bool(weights)
         # Persistent: the normalisation belongs to the weights, so it travels with every
         # checkpoint and model file (a rebuilt model never reloads the weights file).
         self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1))

@@ -13,7 +13,14 @@ from omegaconf import DictConfig
 
 from relocfw import __version__, jobs
 from relocfw.cli_compare import run_compare
-from relocfw.cli_methods import build, build_method, dataset_settings, pick_device, prepare_model
+from relocfw.cli_methods import (
+    build,
+    build_method,
+    centre_label,
+    dataset_settings,
+    pick_device,
+    prepare_model,
+)
 from relocfw.distributed import World
 from relocfw.errors import ConfigError, RelocfwError
 from relocfw.hydra_plugins import install as install_plugin_discovery
@@ -94,7 +101,7 @@ def run_task(cfg: DictConfig, device: torch.device, world: World | None) -> None
         test,
         run_dir,
         baselines=list(cfg.baselines),
-        centre_label=f"{choices['backbone']} (centre crop)",
+        centre_label=centre_label(cfg, choices),
         quiet=quiet,
     )
     metadata = {

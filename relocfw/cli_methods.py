@@ -121,6 +121,13 @@ def method_label(cfg: DictConfig, choices: Mapping[str, str]) -> str:
     return label
 
 
+def centre_label(cfg: DictConfig, choices: Mapping[str, str]) -> str:
+    """The centre-crop baseline's row name; it says so when dropout is sampled."""
+    samples = int(cfg.backbone.get("mc_samples", 0))
+    sampled = f" x{samples} MC dropout" if samples else ""
+    return f"{choices['backbone']}{sampled} (centre crop)"
+
+
 def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None = None) -> Method:
     """Build and check every plugin before any slow work, so a bad option fails fast."""
     settings = train_settings(cfg)
@@ -132,6 +139,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     crop = build(cfg, "crop", choices["crop"])
     check_retrieval(index, retrieval_k)
     check_scoring(str(cfg.scoring), backbone)
+    check_pretrained(cfg, choices, backbone)
     options = {
         group: {
             k: v
@@ -156,6 +164,24 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
         identity,
         options,
         str(cfg.scoring),
+    )
+
+
+def check_pretrained(cfg: DictConfig, choices: Mapping[str, str], backbone: Backbone) -> None:
+    """Refuse fine-tuning settings for a network that starts from random weights.
+
+    The paper fine-tunes ImageNet GoogLeNet at lr 1e-5; from random initialisation that
+    rate does not learn in any reasonable number of steps.
+    """
+    if not cfg.get("pretrained_required", False) or backbone.pretrained:
+        return
+    preset = choices.get("preset", "?")
+    raise ConfigError(
+        f"preset={preset} fine-tunes ImageNet weights (train.lr={cfg.train.lr}) and cannot "
+        f"train backbone={choices['backbone']} from random initialisation: give "
+        "backbone.weights=FILE (a torchvision GoogLeNet state_dict, see the README's "
+        "'ImageNet weights'), or choose a pretrained backbone (backbone=efficientnet_lite0), "
+        "or train from scratch with preset=demo (pretrained_required=false trains anyway)"
     )
 
 

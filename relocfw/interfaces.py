@@ -53,6 +53,9 @@ class Backbone(torch.nn.Module, ABC):
     # convolutions and poolings about 1.5x faster for one image (benchmarks/). A
     # backbone whose forward needs contiguous NCHW tensors (e.g. `.view`) sets False.
     channels_last: bool = True
+    # True when the weights start from training elsewhere (e.g. ImageNet): settings
+    # that only fine-tune (preset=paper's lr 1e-5) refuse a backbone without it.
+    pretrained: bool = False
 
     def __init__(self) -> None:
         super().__init__()

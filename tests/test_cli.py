@@ -115,6 +115,9 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
         (["scoring=fast"], "scoring must be one of plain, shared, got 'fast'"),
         (["index=faiss", "index.kind=lsh"], "index.kind must be one of flat, ivf, hnsw"),
         (["index=faiss", "index.kind=ivf"], "nlist=1024 is more IVF cells than map"),
+        (["preset=paper"], "preset=paper fine-tunes ImageNet weights (train.lr=1e-05)"),
+        (["backbone=bayesian_posenet", "preset=paper"], "or choose a pretrained backbone"),
+        (["train.crop_scale=0.5"], "train.crop_scale must be in [1, 4]"),
     ],
 )
 def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):
@@ -124,6 +127,16 @@ def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):
     assert message in result.stderr
     assert "Traceback" not in result.stderr
     assert "model:" not in result.stdout  # refused before any training
+
+
+def test_the_centre_crop_row_says_when_it_samples_dropout(tmp_path, cache):
+    run_dir = tmp_path / "run"
+    args = [*TINY_OVERRIDES, "backbone.mc_samples=2", f"hydra.run.dir={run_dir}"]
+    result = relocfw(args, tmp_path, cache)
+    assert result.returncode == 0, result.stderr
+    methods = [s["method"] for s in json.loads((run_dir / "summary.json").read_text())]
+    assert methods[1] == "posenet x2 MC dropout (centre crop)"
+    assert "posenet (centre crop)" not in result.stdout
 
 
 def test_corrupt_image_names_the_file(tmp_path, cache, tiny_scene):

@@ -1,10 +1,11 @@
+import re
 import shutil
 
 import numpy as np
 import pytest
 
 from relocfw.data.sevenscenes import SevenScenes, load_sevenscenes, read_pose_file, read_split
-from relocfw.errors import DataError
+from relocfw.errors import ConfigError, DataError
 from relocfw.geometry import pose_to_matrix
 from relocfw.imaging import read_rgb
 
@@ -87,3 +88,31 @@ def test_missing_root_and_scene(tmp_path):
         SevenScenes(tmp_path / "nope", "chess")
     with pytest.raises(DataError, match="dataset.scene"):
         SevenScenes(tmp_path, "chess")
+
+
+def test_sequence_lists_replace_the_split_files(stairs_sample):
+    dataset = SevenScenes(stairs_sample, "stairs", train_sequences=[1, 2], test_sequences=[3])
+    assert {f.name.split("/")[0] for f in dataset.frames("train")} == {"seq-01", "seq-02"}
+    assert {f.name.split("/")[0] for f in dataset.frames("test")} == {"seq-03"}
+    # Only the list given is replaced; the other split still reads its file.
+    only_test = SevenScenes(stairs_sample, "stairs", test_sequences=[3])
+    assert {f.name.split("/")[0] for f in only_test.frames("train")} == {"seq-02", "seq-03"}
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"train_sequences": [1, 2], "test_sequences": [2]}, "share [2]"),
+        ({"train_sequences": []}, "dataset.train_sequences must be a non-empty list"),
+        ({"test_sequences": [0]}, "dataset.test_sequences: sequence numbers are integers >= 1"),
+        ({"test_sequences": 3}, "dataset.test_sequences must be a non-empty list"),
+    ],
+)
+def test_bad_sequence_lists_name_the_key(stairs_sample, options, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        SevenScenes(stairs_sample, "stairs", **options)
+
+
+def test_a_listed_sequence_that_is_missing_names_the_key(stairs_sample):
+    with pytest.raises(DataError, match=r"dataset.train_sequences: sequence folder not found"):
+        SevenScenes(stairs_sample, "stairs", train_sequences=[9]).frames("train")
