@@ -16,6 +16,8 @@ from relocfw import jobs
 from relocfw.cli_methods import build, build_method, prepare_model
 from relocfw.compare_job import MapView, write_comparison
 from relocfw.errors import ConfigError
+from relocfw.evaluation import MethodResult, evaluate
+from relocfw.pipeline import Relocalizer
 
 
 def compose_method(overrides: list[str], name: str) -> tuple[DictConfig, Mapping[str, str]]:
@@ -37,6 +39,7 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
         raise ConfigError(f"compare.reference={reference!r} is not in compare.methods")
     base = [o for o in HydraConfig.get().overrides.task if not o.startswith(("task=", "compare."))]
     quiet = bool(cfg.quiet)
+    crop_seeds = [int(s) for s in cfg.compare.crop_seeds or []]
     # Compose and build every method first: a typo fails before hours of training.
     plans = {}
     for scene in scenes:
@@ -44,7 +47,7 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
         for name, overrides in methods.items():
             method_cfg, choices = compose_method(base + scene_override + list(overrides), name)
             plans[scene, name] = (method_cfg, choices)
-    results, training, maps = {}, {}, {}
+    results, training, maps, seed_runs = {}, {}, {}, {}
     for scene in scenes:
         first_cfg, first_choices = plans[scene, next(iter(methods))]
         dataset = build(first_cfg, "dataset", first_choices["dataset"])
@@ -53,6 +56,7 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
         test = jobs.load_split(dataset, "test", quiet)
         jobs.write_skipped(dataset, Path(HydraConfig.get().runtime.output_dir))
         results[label], training[label], maps[label] = {}, train[0], None
+        seed_runs[label] = {}
         for name in methods:
             method_cfg, choices = plans[scene, name]
             method = build_method(method_cfg, choices, label=name)
@@ -61,6 +65,10 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
             relocalizer = method.relocalizer(device, int(cfg.query_batch_size))
             result, features = jobs.run_method(name, relocalizer, train, test, quiet)
             results[label][name] = result
+            if "seed" in method_cfg.crop and len(crop_seeds) > 1:
+                seed_runs[label][name] = rerun_crop_seeds(
+                    method_cfg, choices, relocalizer, result, test, crop_seeds, quiet
+                )
             if maps[label] is None and hasattr(method.index, "centres"):
                 standardised = method.index.zscore(features)
                 labels = method.index.assign(features)
@@ -72,4 +80,29 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
         reference,
         Path(HydraConfig.get().runtime.output_dir),
         seed=int(cfg.seed),
+        seed_runs=seed_runs,
     )
+
+
+def rerun_crop_seeds(
+    method_cfg: DictConfig,
+    choices: Mapping[str, str],
+    relocalizer: Relocalizer,
+    result: MethodResult,
+    test: tuple,
+    crop_seeds: list[int],
+    quiet: bool,
+) -> dict[int, MethodResult]:
+    """The method's test split again with each crop-search seed; model and map reused."""
+    runs = {}
+    configured = relocalizer.crop
+    for seed in crop_seeds:
+        if seed == int(method_cfg.crop.seed):
+            runs[seed] = result  # the run in the main table
+            continue
+        seeded = method_cfg.copy()
+        seeded.crop.seed = seed
+        relocalizer.crop = build(seeded, "crop", choices["crop"])
+        runs[seed] = evaluate(f"{result.method}, crop.seed={seed}", relocalizer, *test, quiet)
+    relocalizer.crop = configured
+    return runs

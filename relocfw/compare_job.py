@@ -12,7 +12,15 @@ import numpy as np
 
 from relocfw import figures
 from relocfw.checkpoints import write_text_atomic
-from relocfw.comparison import as_csv, as_markdown, median_errors, table_rows, uncertainty_check
+from relocfw.comparison import (
+    as_csv,
+    as_markdown,
+    crop_seed_markdown,
+    crop_seed_spread,
+    median_errors,
+    table_rows,
+    uncertainty_check,
+)
 from relocfw.data.frames import Frame, mean_pose
 from relocfw.evaluation import MethodResult, constant_answer
 from relocfw.jobs import write_results
@@ -38,8 +46,15 @@ def write_comparison(
     reference: str,
     run_dir: Path,
     seed: int = 0,
+    seed_runs: Mapping[str, Mapping[str, Mapping[int, MethodResult]]] | None = None,
 ) -> dict[str, Any]:
-    """Table 1 (Markdown + CSV, printed), per-scene results and the five figures."""
+    """Table 1 (Markdown + CSV, printed), per-scene results and the five figures.
+
+    Args:
+        seed_runs: scene -> method -> crop-search seed -> result, for the methods
+            whose crop search is randomised; their spread goes to crop_seeds.md and
+            comparison.json.
+    """
     run_dir = Path(run_dir)
     header, rows = table_rows(median_errors(results), reference)
     markdown = as_markdown(header, rows)
@@ -100,6 +115,18 @@ def write_comparison(
                 f"(rank correlation {check['spread_error_rank_correlation']:.2f})"
             )
         summary["scenes"][scene] = {"uncertainty": checks}
+    spreads = {
+        scene: {method: crop_seed_spread(runs) for method, runs in by_method.items()}
+        for scene, by_method in (seed_runs or {}).items()
+        if by_method
+    }
+    if spreads:
+        table = crop_seed_markdown(spreads)
+        write_text_atomic(table, run_dir / "crop_seeds.md")
+        print("\nSpread of the medians over crop-search seeds (same model and map):\n")
+        print(table)
+        for scene, by_method in spreads.items():
+            summary["scenes"].setdefault(scene, {})["crop_seed_spread"] = by_method
     summary["figures"] = [str(p) for p in written]
     write_text_atomic(json.dumps(summary, indent=2) + "\n", run_dir / "comparison.json")
     print(f"\ncomparison: {run_dir / 'comparison.md'}; figures: {len(written)} PNG in {run_dir}")

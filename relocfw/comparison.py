@@ -110,3 +110,50 @@ def uncertainty_check(result: MethodResult, share: float = 0.25) -> dict[str, fl
         # Spearman correlation: Pearson's on ranks.
         "spread_error_rank_correlation": float(np.corrcoef(ranks(spread), ranks(positions))[0, 1]),
     }
+
+
+def crop_seed_spread(by_seed: Mapping[int, MethodResult]) -> dict[str, object]:
+    """How much a randomised crop search's medians move with its own seed.
+
+    Args:
+        by_seed: the same method, model and map run with each crop-search seed.
+
+    Returns:
+        The seeds, each seed's median position (m) and orientation (deg) errors, and
+        their mean, sample standard deviation, minimum and maximum.
+    """
+    seeds = sorted(by_seed)
+    positions = np.array([np.median(by_seed[s].position_errors()) for s in seeds])
+    orientations = np.array([np.median(by_seed[s].orientation_errors()) for s in seeds])
+
+    def spread(values: np.ndarray) -> dict[str, float]:
+        return {
+            "mean": float(values.mean()),
+            "std": float(values.std(ddof=1)) if len(values) > 1 else 0.0,
+            "min": float(values.min()),
+            "max": float(values.max()),
+        }
+
+    return {
+        "seeds": seeds,
+        "median_position_m": positions.tolist(),
+        "median_orientation_deg": orientations.tolist(),
+        "median_position_m_spread": spread(positions),
+        "median_orientation_deg_spread": spread(orientations),
+    }
+
+
+def crop_seed_markdown(spreads: Mapping[str, Mapping[str, Mapping[str, object]]]) -> str:
+    """scene x method table of the medians' mean +- std (min - max) over crop seeds."""
+    header = ["scene", "method", "crop seeds", "median position (m)", "median orientation (deg)"]
+    rows = []
+    for scene, by_method in spreads.items():
+        for method, spread in by_method.items():
+            cells = [scene, method, " ".join(str(s) for s in spread["seeds"])]
+            for key, fmt in (("median_position_m", ".3f"), ("median_orientation_deg", ".2f")):
+                s = spread[f"{key}_spread"]
+                cells.append(
+                    f"{s['mean']:{fmt}} +- {s['std']:{fmt}} ({s['min']:{fmt}} - {s['max']:{fmt}})"
+                )
+            rows.append(cells)
+    return as_markdown(header, rows)

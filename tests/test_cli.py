@@ -80,12 +80,13 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
     run_dir = tmp_path / "compare"
     result = relocfw([*TINY_OVERRIDES, "task=compare", f"hydra.run.dir={run_dir}"], tmp_path, cache)
     assert result.returncode == 0, result.stderr
-    # Six methods, one trained model.
-    assert result.stdout.count("(trained)") <= 1 and result.stdout.count("(reused)") >= 5
+    # Seven methods, one trained model.
+    assert result.stdout.count("(trained)") <= 1 and result.stdout.count("(reused)") >= 6
     header = (run_dir / "comparison.csv").read_text().splitlines()[0]
     methods = ("PoseNet", "Bayesian PoseNet", "Retrieval", "Ours (GA + k-means)")
-    for method in (*methods, "Ours, shared scoring"):
+    for method in (*methods, "Ours, shared scoring", "Sweep + k-means", "GA + exhaustive"):
         assert method in header
+    assert "Sweep + exhaustive" not in header  # changed search AND index: bounds nothing
     assert "Bayesian PoseNet uncertainty" in result.stdout
     pngs = sorted(p.name for p in run_dir.glob("*.png"))
     assert pngs == [
@@ -97,6 +98,12 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
     ]
     summary = json.loads((run_dir / "comparison.json").read_text())
     assert "Bayesian PoseNet" in summary["scenes"]["synthetic"]["uncertainty"]
+    # The GA methods ran once per crop seed; the deterministic ones did not.
+    spread = summary["scenes"]["synthetic"]["crop_seed_spread"]
+    assert sorted(spread) == ["GA + exhaustive", "Ours (GA + k-means)", "Ours, shared scoring"]
+    assert spread["Ours (GA + k-means)"]["seeds"] == [0, 1, 2]
+    assert len(spread["Ours (GA + k-means)"]["median_position_m"]) == 3
+    assert "Ours (GA + k-means)" in (run_dir / "crop_seeds.md").read_text()
 
 
 @pytest.mark.parametrize(

@@ -5,6 +5,8 @@ from relocfw import figures
 from relocfw.comparison import (
     as_csv,
     as_markdown,
+    crop_seed_markdown,
+    crop_seed_spread,
     error_decrease,
     median_errors,
     table_rows,
@@ -98,3 +100,22 @@ def test_tsne_png(tmp_path):
     centres = rng.normal(size=(3, 8))
     labels = rng.integers(0, 3, size=20)
     assert_png(figures.tsne_of_map(features, centres, labels, tmp_path / "tsne.png"))
+
+
+def test_crop_seed_spread_of_the_medians():
+    truth = frames(5)
+    # Position errors offset * (i + 1) for i = 0..4: the median is 3 * offset.
+    by_seed = {
+        0: result("GA", truth, 0.1),
+        1: result("GA", truth, 0.2),
+        2: result("GA", truth, 0.3),
+    }
+    spread = crop_seed_spread(by_seed)
+    assert spread["seeds"] == [0, 1, 2]
+    assert np.allclose(spread["median_position_m"], [0.3, 0.6, 0.9])
+    position = spread["median_position_m_spread"]
+    assert position["mean"] == pytest.approx(0.6)
+    assert position["std"] == pytest.approx(0.3)  # sample std of 0.3, 0.6, 0.9
+    assert (position["min"], position["max"]) == pytest.approx((0.3, 0.9))
+    table = crop_seed_markdown({"room": {"GA": spread}})
+    assert "| room | GA | 0 1 2 | 0.600 +- 0.300 (0.300 - 0.900) |" in table
