@@ -17,7 +17,7 @@ from relocfw.errors import DataError
 
 # Bump when the layout of saved models changes: it is part of every checkpoint's key,
 # so an old checkpoint is never picked up by code that cannot read it.
-CHECKPOINT_FORMAT = 2
+CHECKPOINT_FORMAT = 3
 
 
 def settings_key(settings: dict[str, Any]) -> str:

@@ -3,7 +3,9 @@
     torchrun --nproc-per-node=2 -m relocfw task=train [options]
 
 torchrun starts the processes and sets WORLD_SIZE, RANK and LOCAL_RANK; each one runs
-the CLI, which joins the group here: gloo on CPU, nccl with one GPU per process.
+the CLI, which joins the group here: gloo on CPU, nccl with one GPU per process. On
+GPUs batch norm is synchronised over the processes, on CPU it stays per process
+(relocfw.distributed says why); either way each process draws its own dropout masks.
 """
 
 from __future__ import annotations

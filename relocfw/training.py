@@ -17,7 +17,12 @@ from relocfw.checkpoints import (
     remove_stale_temporaries,
     save_atomic,
 )
-from relocfw.distributed import World
+from relocfw.distributed import (
+    World,
+    data_parallel,
+    gather_rng_states,
+    restore_own_rng_state,
+)
 from relocfw.errors import ConfigError, DataError
 from relocfw.imaging import Strip, to_network_input
 from relocfw.interfaces import Backbone
@@ -206,7 +211,10 @@ def train_backbone(
 
     With a `world` (torch.distributed initialised, e.g. under torchrun), this process
     trains on its share of every global batch under DistributedDataParallel; rank 0
-    alone writes checkpoints and shows progress. Losses are global-batch means.
+    alone writes checkpoints and shows progress. Losses are global-batch means. Each
+    process draws its own dropout masks (torch seeded from the seed and its rank);
+    checkpoints keep every process's random streams, so resuming needs as many
+    processes as the interrupted run had.
     """
     settings.validate()
     if world is not None:
@@ -214,7 +222,9 @@ def train_backbone(
         quiet = quiet or not world.is_main
     writes = world is None or world.is_main
     device = torch.device(device)
-    torch.manual_seed(settings.seed)
+    # Batches come from `generator`, the same on every process; torch's own streams
+    # (dropout) are per process, or all ranks would drop the same units.
+    torch.manual_seed(settings.seed if world is None else world.torch_seed(settings.seed))
     generator = torch.Generator().manual_seed(settings.seed)
     positions = data.positions.numpy()
     backbone.set_position_normalisation(
@@ -245,12 +255,16 @@ def train_backbone(
             return TrainingRun(list(state["losses"]), reused=True)
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"])
-        torch.set_rng_state(state["torch_rng"])  # dropout masks continue as they would have
+        # Every process's dropout masks continue as they would have.
+        restore_own_rng_state(state["rng"], world, device, checkpoint)
         step, losses = state["iteration"], list(state["losses"])
         resumed_from = step
 
     def save(complete: bool) -> None:
-        if checkpoint is not None and writes:
+        if checkpoint is None:
+            return
+        rng = gather_rng_states(world, device)  # a collective: every process takes part
+        if writes:
             payload = {
                 "format": CHECKPOINT_FORMAT,
                 "key": key,
@@ -260,17 +274,13 @@ def train_backbone(
                 "weighting": weighting.state_dict(),
                 "optimizer": optimizer.state_dict(),
                 "generator": generator.get_state(),
-                "torch_rng": torch.get_rng_state(),
+                "rng": rng,  # per rank: each process's CPU (and GPU) stream
                 "losses": losses,
                 "settings": asdict(settings),
             }
             save_atomic(payload, checkpoint)
 
-    model: torch.nn.Module = backbone
-    if world is not None:
-        # Rank 0's initial weights are broadcast; gradients are averaged in backward.
-        device_ids = [device.index] if device.type == "cuda" else None
-        model = torch.nn.parallel.DistributedDataParallel(backbone, device_ids=device_ids)
+    model = data_parallel(backbone, world, device)
     backbone.train()
     progress = Progress(settings.iterations, "training", quiet=quiet)
     progress.advance(step)
