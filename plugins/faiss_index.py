@@ -21,7 +21,7 @@ import torch
 from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import SimilarityIndex
 from relocfw.options import integer_at_least
-from relocfw.standardise import ZScore, checked_descriptors, row_chunks
+from relocfw.standardise import ROWS_AT_A_TIME, ZScore, checked_descriptors, row_chunks
 
 KINDS = ("flat", "ivf", "hnsw")
 PRECISIONS = ("float32", "float16")
@@ -51,6 +51,8 @@ class FaissIndex(SimilarityIndex):
         ef_construction: HNSW candidate list while building.
         ef_search: HNSW candidate list while searching (more: higher recall, slower).
         seed: seeds the PCA and IVF training sample.
+        rows_at_a_time: map rows standardised and added per step while fitting (bounds
+            the float32 copy made of each step); the index is the same for any value.
     """
 
     def __init__(
@@ -64,6 +66,7 @@ class FaissIndex(SimilarityIndex):
         ef_construction: int = 64,
         ef_search: int = 64,
         seed: int = 0,
+        rows_at_a_time: int = ROWS_AT_A_TIME,
     ) -> None:
         if kind not in KINDS:
             raise ConfigError(f"index.kind must be one of {', '.join(KINDS)}, got {kind!r}")
@@ -80,6 +83,7 @@ class FaissIndex(SimilarityIndex):
         self.ef_construction = integer_at_least("ef_construction", ef_construction, 1)
         self.ef_search = integer_at_least("ef_search", ef_search, 1)
         self.seed = integer_at_least("seed", seed, 0)
+        self.rows_at_a_time = integer_at_least("rows_at_a_time", rows_at_a_time, 1)
         self.faiss = import_faiss()
 
     def check_map_size(self, count: int) -> None:
@@ -130,9 +134,9 @@ class FaissIndex(SimilarityIndex):
         return self._standardised(features[np.sort(rows)])
 
     def fit(self, features: np.ndarray) -> None:
-        features = checked_descriptors(features)
+        features = checked_descriptors(features, rows_at_a_time=self.rows_at_a_time)
         self.check_map_size(len(features))
-        self.zscore = ZScore().fit(features)
+        self.zscore = ZScore().fit(features, self.rows_at_a_time)
         dim = features.shape[1]
         index = self._empty_index(self.pca_dim or dim)
         if self.pca_dim:
@@ -141,7 +145,7 @@ class FaissIndex(SimilarityIndex):
         if not index.is_trained:  # PCA, IVF: faiss seeds its k-means itself (fixed seed)
             index.train(self._training_sample(features))
         self._reserve(index, len(features))
-        for part in row_chunks(len(features)):
+        for part in row_chunks(len(features), self.rows_at_a_time):
             index.add(self._standardised(features[part]))
         self.index = index
         self.dim = dim

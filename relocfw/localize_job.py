@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import glob
 import io
+import re
 from pathlib import Path
 
 from relocfw.checkpoints import write_text_atomic
@@ -35,13 +36,16 @@ def find_images(pattern: str) -> list[Path]:
     return found
 
 
+TIMESTAMP_NAME = re.compile(r"\d+(\.\d+)?")
+
+
 def timestamp_of(path: Path, position: int) -> str:
-    """The file name's number when it is one (TUM names images by time), else its index."""
-    try:
-        float(path.stem)
-        return path.stem
-    except ValueError:
-        return str(position)
+    """The file name's number when it is one (TUM names images by time), else its index.
+
+    Only plain decimals count (digits, one optional fraction): `float` would also take
+    names such as "nan", "inf" or "1_000", which TUM tools cannot read back.
+    """
+    return path.stem if TIMESTAMP_NAME.fullmatch(path.stem) else str(position)
 
 
 def localize_images(

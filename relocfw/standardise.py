@@ -10,32 +10,53 @@ import torch
 from relocfw.errors import DataError
 
 ROWS_AT_A_TIME = 16384  # chunk size for work over a whole map (10^6 rows is 8 GB)
+# No dimension's scale is below this fraction of the median spread. A nearly dead ReLU
+# unit (std 1e-9 where the others have ~1) would otherwise turn a 1e-6 wobble into a
+# z-score of 1000 and decide every distance alone; at 1% of the typical spread such a
+# unit counts no more than a unit with 1/100 of the typical variation.
+FLOOR_FRACTION = 0.01
+# A spread below this fraction of a dimension's mean is rounding in the mean itself
+# (a constant 0.1 leaves a std near 1e-17), not variation.
+ROUNDING = 1e-12
 
 
-def row_chunks(count: int) -> Iterator[slice]:
-    """Slices of at most ROWS_AT_A_TIME rows covering 0..count."""
-    for start in range(0, count, ROWS_AT_A_TIME):
-        yield slice(start, min(start + ROWS_AT_A_TIME, count))
+def row_chunks(count: int, rows: int = ROWS_AT_A_TIME) -> Iterator[slice]:
+    """Slices of at most `rows` rows covering 0..count."""
+    for start in range(0, count, rows):
+        yield slice(start, min(start + rows, count))
+
+
+def floored_scales(std: np.ndarray, mean: np.ndarray) -> np.ndarray:
+    """Each dimension's std, raised to FLOOR_FRACTION x the median of those that vary.
+
+    Where no dimension varies at all there is no typical spread to take a fraction
+    of, and every scale is 1.0 (descriptors are then only centred).
+    """
+    varies = std > ROUNDING * np.abs(mean)
+    if not varies.any():
+        return np.ones_like(std)
+    return np.maximum(std, FLOOR_FRACTION * np.median(std[varies]))
 
 
 class ZScore:
     """Per-dimension standardisation fitted on the map's descriptors.
 
-    Dimensions that never vary (dead ReLU units) keep a unit scale instead of
-    dividing by zero. Fitting goes chunk by chunk in float64 (mean, then spread about
-    it), so a float32 map of any size is never copied whole.
+    Each dimension is divided by its spread, floored at FLOOR_FRACTION (1%) of the
+    median spread of the dimensions that vary: a constant or nearly dead unit (dead
+    ReLUs) is neither a division by zero nor, when a query happens to move it a
+    little, a z-score in the millions that outweighs every other dimension. Where no
+    dimension varies, every scale is 1. Fitting goes chunk by chunk in float64 (mean,
+    then spread about it), so a float32 map of any size is never copied whole.
     """
 
-    def fit(self, features: np.ndarray) -> ZScore:
-        features = checked_descriptors(features)
+    def fit(self, features: np.ndarray, rows_at_a_time: int = ROWS_AT_A_TIME) -> ZScore:
+        """Fit on [N, D] descriptors, `rows_at_a_time` rows per step."""
+        features = checked_descriptors(features, rows_at_a_time=rows_at_a_time)
         count = len(features)
-        self.mean = sum(features[part].sum(axis=0, dtype=np.float64) for part in row_chunks(count))
-        self.mean = self.mean / count
-        squares = sum(
-            np.square(features[part] - self.mean).sum(axis=0) for part in row_chunks(count)
-        )
-        std = np.sqrt(squares / count)
-        self.std = np.where(std > 1e-12, std, 1.0)
+        chunks = list(row_chunks(count, rows_at_a_time))
+        self.mean = sum(features[part].sum(axis=0, dtype=np.float64) for part in chunks) / count
+        squares = sum(np.square(features[part] - self.mean).sum(axis=0) for part in chunks)
+        self.std = floored_scales(np.sqrt(squares / count), self.mean)
         return self
 
     def state(self) -> dict[str, torch.Tensor]:
@@ -50,8 +71,13 @@ class ZScore:
         return (np.asarray(features, dtype=np.float64) - self.mean) / self.std
 
 
-def checked_descriptors(features: np.ndarray, dim: int | None = None) -> np.ndarray:
+def checked_descriptors(
+    features: np.ndarray, dim: int | None = None, rows_at_a_time: int = ROWS_AT_A_TIME
+) -> np.ndarray:
     """[N, D] finite descriptors, float32 or float64 as given (no copy of a large map).
+
+    Finiteness is checked `rows_at_a_time` rows at a time, so the check's boolean
+    temporary stays small.
 
     Raises:
         DataError: saying what is wrong (shape, dimensions, NaN or infinity).
@@ -63,7 +89,7 @@ def checked_descriptors(features: np.ndarray, dim: int | None = None) -> np.ndar
         raise DataError(f"expected a non-empty [N, D] descriptor array, got shape {features.shape}")
     if dim is not None and features.shape[1] != dim:
         raise DataError(f"descriptors have {features.shape[1]} dimensions, the map has {dim}")
-    for part in row_chunks(len(features)):
+    for part in row_chunks(len(features), rows_at_a_time):
         if not np.isfinite(features[part]).all():
             raise DataError("descriptors contain NaN or infinity")
     return features
@@ -74,19 +100,23 @@ def check_features(features: np.ndarray, dim: int | None = None) -> np.ndarray:
     return checked_descriptors(np.asarray(features, dtype=np.float64), dim)
 
 
-def k_nearest(queries: np.ndarray, points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+def k_nearest(
+    queries: np.ndarray, points: np.ndarray, k: int, chunk: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """[n, k] Euclidean distances to, and indices of, the k nearest points, closest first.
 
-    Uses |a|^2 + |b|^2 - 2ab (one matrix product) in chunks, so memory stays
-    bounded for large maps.
+    Uses |a|^2 + |b|^2 - 2ab (one matrix product) for `chunk` queries at a time, so
+    memory stays bounded for large maps. By default a chunk's distance matrix holds
+    about 2^24 entries (128 MB).
     """
     k = min(k, len(points))
+    if chunk is None:
+        chunk = max(1, 2**24 // max(1, len(points)))
     point_norms = np.einsum("ij,ij->i", points, points)
     distances = np.empty((len(queries), k))
     indices = np.empty((len(queries), k), dtype=np.int64)
-    chunk = max(1, 2**24 // max(1, len(points)))
-    for start in range(0, len(queries), chunk):
-        q = queries[start : start + chunk]
+    for part in row_chunks(len(queries), chunk):
+        q = queries[part]
         squared = np.einsum("ij,ij->i", q, q)[:, None] + point_norms[None, :] - 2 * q @ points.T
         if k < len(points):
             best = np.argpartition(squared, k - 1, axis=1)[:, :k]
@@ -94,14 +124,14 @@ def k_nearest(queries: np.ndarray, points: np.ndarray, k: int) -> tuple[np.ndarr
             best = np.broadcast_to(np.arange(len(points)), squared.shape)
         order = np.argsort(np.take_along_axis(squared, best, axis=1), axis=1, kind="stable")
         best = np.take_along_axis(best, order, axis=1)
-        indices[start : start + chunk] = best
-        distances[start : start + chunk] = np.sqrt(
-            np.maximum(np.take_along_axis(squared, best, axis=1), 0)
-        )
+        indices[part] = best
+        distances[part] = np.sqrt(np.maximum(np.take_along_axis(squared, best, axis=1), 0))
     return distances, indices
 
 
-def nearest(queries: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Distance to, and index of, the nearest point for each query."""
-    distances, indices = k_nearest(queries, points, 1)
+def nearest(
+    queries: np.ndarray, points: np.ndarray, chunk: int | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Distance to, and index of, the nearest point for each query (`chunk`: k_nearest's)."""
+    distances, indices = k_nearest(queries, points, 1, chunk)
     return distances[:, 0], indices[:, 0]

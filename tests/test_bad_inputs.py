@@ -12,6 +12,8 @@ import pytest
 import torch
 
 from relocfw.checkpoints import load_checkpoint
+from relocfw.cli_methods import pick_device
+from relocfw.errors import ConfigError
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
 from tests.formats import write_cambridge, write_folder, write_tum
 from tests.test_cli import relocfw
@@ -208,6 +210,8 @@ def test_localize_matches_the_evaluation_run(trained_run, tiny_scene):
         ]
     )
     assert np.allclose(poses[:, 1:], expected, atol=1e-5)
+    # frame-000000.color.png ... are not times: the timestamp is the image's position.
+    assert poses[:, 0].tolist() == [0, 1, 2, 3]
 
 
 @pytest.mark.parametrize(
@@ -284,3 +288,61 @@ def test_library_load_and_localize(trained_run):
     scene = next((home / "cache" / "scenes").iterdir())
     answer = relocalizer.localize(read_rgb(scene / "seq-03" / "frame-000000.color.png"))
     assert answer.pose.position.shape == (3,) and answer.evaluations >= 1
+
+
+def fake_cuda(monkeypatch, devices):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: devices > 0)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: devices)
+
+
+@pytest.mark.parametrize(
+    "name, devices, message",
+    [
+        ("cuda:x", 2, "device=cuda:x is not a device name; use cpu, cuda, cuda:N or mps"),
+        ("cuda:-1", 2, "device=cuda:-1 is not a device name"),
+        ("gpu", 2, "device=gpu is not a device name"),
+        ("cuda:2", 2, "device=cuda:2, but this machine has 2 CUDA device(s): use cuda:0 to cuda:1"),
+        ("cuda:7", 1, "device=cuda:7, but this machine has 1 CUDA device(s): use cuda:0 to cuda:0"),
+        ("cuda:0", 0, "device=cuda:0, but CUDA is not available here; use device=cpu"),
+        ("cuda", 0, "device=cuda, but CUDA is not available here"),
+    ],
+    ids=["letter", "negative", "unknown type", "one past", "far past", "no cuda", "no cuda (any)"],
+)
+def test_a_device_that_is_not_there_is_refused_by_name(monkeypatch, name, devices, message):
+    fake_cuda(monkeypatch, devices)
+    with pytest.raises(ConfigError) as caught:
+        pick_device(name)
+    assert str(caught.value).startswith(message)
+
+
+@pytest.mark.parametrize("name, devices", [("cuda:1", 2), ("cuda:0", 1), ("cuda", 1), ("cpu", 0)])
+def test_a_device_that_is_there_is_accepted(monkeypatch, name, devices):
+    fake_cuda(monkeypatch, devices)
+    assert pick_device(name) == torch.device(name)
+
+
+FAKE_TWO_GPUS = """import torch
+torch.cuda.is_available = lambda: True
+torch.cuda.device_count = lambda: 2
+"""
+
+
+@pytest.mark.parametrize(
+    "device, fake, message",
+    [
+        ("cuda:x", False, "device=cuda:x is not a device name"),
+        ("cuda:5", True, "device=cuda:5, but this machine has 2 CUDA device(s)"),
+    ],
+    ids=["malformed", "beyond the devices"],
+)
+def test_a_bad_device_index_ends_the_command_with_one_message(tmp_path, device, fake, message):
+    env = {}
+    if fake:  # this machine has no GPU: a sitecustomize makes torch report two
+        (tmp_path / "fake").mkdir()
+        (tmp_path / "fake" / "sitecustomize.py").write_text(FAKE_TWO_GPUS)
+        env["PYTHONPATH"] = str(tmp_path / "fake")
+    result = relocfw([*TINY_OVERRIDES, f"device={device}"], tmp_path, **env)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+    assert result.stderr.count("error:") == 1 and "Traceback" not in result.stderr
+    assert not (tmp_path / "cache").exists()  # refused before any scene was rendered

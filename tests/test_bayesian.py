@@ -1,3 +1,5 @@
+from typing import NamedTuple
+
 import numpy as np
 import pytest
 import torch
@@ -5,6 +7,7 @@ import torch
 from relocfw.geometry import mean_quaternion, orientation_error_deg
 from relocfw.plugins.posenet import PoseNet
 from relocfw.pose_head import PoseHead, mean_quaternions
+from relocfw.values import PoseOutput
 
 
 def axis_angle(axis, degrees):
@@ -30,19 +33,91 @@ def test_weighted_mean_quaternion_leans_to_the_heavier_rotation():
     assert orientation_error_deg(mean, a) < orientation_error_deg(mean, b)
 
 
-def test_mc_dropout_gives_mean_pose_and_spread():
+class Sampled(NamedTuple):
+    head: PoseHead
+    pooled: torch.Tensor  # [5, 16] head inputs
+    sampled: PoseOutput  # the MC-dropout answer
+    plain: PoseOutput  # the dropout-free answer
+    dropped: torch.Tensor  # [samples * 5, 64] the descriptors after the drawn masks
+
+
+@torch.no_grad()
+def sampled_head(monkeypatch, samples: int) -> Sampled:
+    """A seeded head's MC-dropout answer for 5 inputs, with the dropped features it used.
+
+    torch's dropout is wrapped to record what it returned, so a test can recompute the
+    answer from the very masks the head drew, without touching its random stream.
+    """
     torch.manual_seed(0)
     head = PoseHead(in_features=16, feature_dim=64, dropout=0.5).eval()
     pooled = torch.rand(5, 16)
-    deterministic = head(pooled, lambda p: p)
-    sampled = head(pooled, lambda p: p, mc_samples=200)
-    assert deterministic.position_spread is None
-    assert sampled.position_spread.shape == (5,) and torch.all(sampled.position_spread > 0)
-    assert sampled.orientation_spread_deg.shape == (5,)
-    # The descriptor does not depend on dropout: crop search is unchanged by sampling.
-    assert torch.equal(sampled.features, deterministic.features)
-    # With many samples the mean pose approaches the dropout-free pose.
-    assert torch.allclose(sampled.positions, deterministic.positions, atol=0.1)
+    recorded = []
+    dropout = torch.nn.functional.dropout
+
+    def recording(x, p=0.5, training=True, inplace=False):
+        out = dropout(x, p, training, inplace)
+        recorded.append(out.clone())
+        return out
+
+    monkeypatch.setattr(torch.nn.functional, "dropout", recording)
+    # An affine to-world map: samples must be mapped before they are averaged.
+    sampled = head(pooled, lambda p: 3.0 * p + 1.0, mc_samples=samples)
+    monkeypatch.undo()
+    assert len(recorded) == 1, "expected one dropout call drawing every mask"
+    plain = head(pooled, lambda p: 3.0 * p + 1.0)
+    return Sampled(head, pooled, sampled, plain, recorded[0])
+
+
+def as_array(tensor: torch.Tensor) -> np.ndarray:
+    return tensor.detach().double().numpy()
+
+
+def test_mc_dropout_answer_is_the_mean_and_spread_of_the_sampled_poses(monkeypatch):
+    head, _, sampled, _, dropped = sampled_head(monkeypatch, samples=200)
+    dropped = dropped.double().numpy()
+    assert dropped.shape == (200 * 5, 64)
+    # Recomputed in float64 numpy from the regressor's weights and the recorded masks.
+    position, orientation = head.regressor.position, head.regressor.orientation
+    positions = dropped @ as_array(position.weight).T + as_array(position.bias)
+    positions = (3.0 * positions + 1.0).reshape(200, 5, 3)
+    quaternions = dropped @ as_array(orientation.weight).T + as_array(orientation.bias)
+    quaternions = quaternions.reshape(200, 5, 4)
+    mean_position = positions.mean(axis=0)
+    spread = np.sqrt(((positions - mean_position) ** 2).sum(axis=2).mean(axis=0))
+    means = np.stack([mean_quaternion(quaternions[:, b]) for b in range(5)])
+    angles = np.stack([orientation_error_deg(quaternions[:, b], means[b]) for b in range(5)])
+    # Values are 0.2-2 m, spreads about 0.7 m and several degrees; the tolerances
+    # are float32 rounding, five or more orders of magnitude below them.
+    assert np.abs(mean_position).min() > 0.1 and spread.min() > 0.1 and angles.mean() > 1
+    assert np.allclose(sampled.positions.numpy(), mean_position, rtol=1e-5, atol=1e-6)
+    assert np.allclose(sampled.position_spread.numpy(), spread, rtol=1e-5, atol=1e-6)
+    assert orientation_error_deg(sampled.quaternions.numpy(), means).max() < 1e-2
+    assert np.allclose(sampled.orientation_spread_deg.numpy(), angles.mean(axis=1), rtol=1e-4)
+
+
+def test_mc_dropout_masks_drop_about_half_and_rescale_the_rest(monkeypatch):
+    head, pooled, _, _, dropped = sampled_head(monkeypatch, samples=200)
+    dropped = dropped.view(200, 5, 64)
+    features = head.describe(pooled).expand_as(dropped)
+    kept = dropped != 0
+    assert torch.allclose(dropped[kept], 2.0 * features[kept])  # scaled by 1 / (1 - 0.5)
+    live = features != 0  # ReLU zeros stay zero whatever the mask
+    assert abs(kept[live].float().mean().item() - 0.5) < 0.02
+    # Every sample draws its own mask: no two of the 200 are the same.
+    assert len({tuple(row.tolist()) for row in kept[:, 0]}) == 200
+
+
+def test_mc_dropout_mean_pose_converges_to_the_dropout_free_pose(monkeypatch):
+    # Dropout rescales what it keeps, so the expected dropped descriptor is the
+    # descriptor and the linear regressor's expected position is the plain one. The
+    # mean of N samples is off by about spread / sqrt(N) per axis; allow four times that.
+    _, _, sampled, plain, _ = sampled_head(monkeypatch, samples=40000)
+    assert plain.position_spread is None
+    assert torch.equal(sampled.features, plain.features)
+    error = (sampled.positions - plain.positions).abs()
+    allowed = 4 * sampled.position_spread[:, None] / np.sqrt(40000)
+    assert torch.all(error < allowed)
+    assert torch.all(allowed < 0.02 * plain.positions.norm(dim=1, keepdim=True))
     assert torch.allclose(sampled.quaternions.norm(dim=1), torch.ones(5), atol=1e-5)
 
 

@@ -77,6 +77,32 @@ def test_saved_state_searches_the_same(descriptors, kind):
     assert np.array_equal(restored.neighbours(queries, 2)[1], index.neighbours(queries, 2)[1])
 
 
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"kind": "flat"},
+        {"kind": "flat", "precision": "float16"},
+        {"kind": "ivf", "nlist": 16, "nprobe": 4},
+        {"kind": "flat", "pca_dim": 16},
+    ],
+)
+def test_fitting_in_many_chunks_builds_the_same_index(descriptors, options):
+    map_points, queries = descriptors
+    whole = FaissIndex(**options, rows_at_a_time=len(map_points))
+    whole.fit(map_points.astype(np.float32))
+    chunked = FaissIndex(**options, rows_at_a_time=300)  # six chunks of 300 and one of 200
+    chunked.fit(map_points.astype(np.float32))
+    assert chunked.index.ntotal == whole.index.ntotal == len(map_points)
+    assert np.allclose(chunked.zscore.mean, whole.zscore.mean, rtol=1e-12, atol=1e-12)
+    assert np.allclose(chunked.zscore.std, whole.zscore.std, rtol=1e-12, atol=0)
+    # The mean may differ in its last bit (another summation order), so distances
+    # agree to float32 rounding rather than bit for bit.
+    want_d, want_i = whole.neighbours(queries, 3)
+    got_d, got_i = chunked.neighbours(queries, 3)
+    assert np.array_equal(got_i, want_i)
+    assert np.allclose(got_d, want_d, rtol=1e-5, atol=0)
+
+
 def test_sweep_with_faiss_flat_answers_as_with_exhaustive(tiny_scene):
     from relocfw.data.frames import read_images
     from relocfw.data.sevenscenes import load_sevenscenes

@@ -84,7 +84,123 @@ def test_batches_are_random_crops_with_their_labels(data):
     images, positions, quaternions = data.batch(torch.tensor([0, 5]), generator, True)
     assert images.shape == (2, 3, 32, 32) and images.dtype == torch.uint8
     assert torch.equal(positions[1], data.positions[5])
+    assert torch.equal(quaternions[0], data.quaternions[0])
     assert torch.allclose(quaternions.norm(dim=1), torch.ones(2))
+
+
+def window_offsets(strip: torch.Tensor, size: int) -> dict[bytes, list[tuple[int, int]]]:
+    """Every size x size window of a [3, H, W] strip, by its bytes -> its (y, x) corners."""
+    windows: dict[bytes, list[tuple[int, int]]] = {}
+    for y in range(strip.shape[1] - size + 1):
+        for x in range(strip.shape[2] - size + 1):
+            key = strip[:, y : y + size, x : x + size].numpy().tobytes()
+            windows.setdefault(key, []).append((y, x))
+    return windows
+
+
+def crop_offsets(data: TrainingImages, draws: int, random_crops: bool = True):
+    """Where `draws` crops of image 0 were cut: one (y, x) per crop, and the strip's shape."""
+    generator = torch.Generator().manual_seed(0)
+    images, _, _ = data.batch(torch.zeros(draws, dtype=torch.long), generator, random_crops)
+    windows = window_offsets(data.strips[0].pixels, data.input_size)
+    offsets = []
+    for crop in images:
+        corners = windows.get(crop.numpy().tobytes(), [])
+        # This textured scene has no two equal windows, so a crop names its corner.
+        assert len(corners) == 1, "a crop that is not exactly one window of the strip"
+        offsets.append(corners[0])
+    return offsets, tuple(data.strips[0].pixels.shape[1:])
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_scene):
+    frames = load_sevenscenes(tiny_scene, None, "train")
+    return read_images(frames, quiet=True), [f.pose for f in frames]
+
+
+def test_crops_at_scale_one_are_every_window_along_the_long_axis_only(scene):
+    data = TrainingImages(*scene, input_size=32, crop_scale=1.0)
+    offsets, (height, width) = crop_offsets(data, 200)
+    assert (height, width) == (32, 43)  # 48x36 scaled to a 32-pixel short side
+    assert {y for y, _ in offsets} == {0}
+    assert {x for _, x in offsets} == set(range(width - 32 + 1))  # both ends included
+    assert len({x for _, x in offsets[:10]}) > 1  # draws differ from one crop to the next
+
+
+def test_crops_at_posenet_scale_move_along_both_axes(scene):
+    data = TrainingImages(*scene, input_size=32, crop_scale=256 / 224)
+    offsets, (height, width) = crop_offsets(data, 400)
+    assert (height, width) == (37, 49)  # short side round(32 x 256 / 224) = 37
+    assert {y for y, _ in offsets} == set(range(height - 32 + 1))
+    assert {x for _, x in offsets} == set(range(width - 32 + 1))
+
+
+def test_without_random_crops_every_draw_is_the_centre_window(scene):
+    data = TrainingImages(*scene, input_size=32, crop_scale=256 / 224)
+    offsets, (height, width) = crop_offsets(data, 5, random_crops=False)
+    assert set(offsets) == {((height - 32) // 2, (width - 32) // 2)}
+
+
+def test_cosine_schedule_falls_from_lr_to_one_percent_and_is_halfway_at_mid_training():
+    settings = TrainSettings(iterations=1000, lr=0.2, lr_schedule="cosine")
+    rates = np.array([training.learning_rate(settings, step) for step in range(1001)])
+    assert rates[0] == pytest.approx(0.2, rel=1e-12)
+    assert rates[-1] == pytest.approx(0.01 * 0.2, rel=1e-12)
+    assert rates[500] == pytest.approx(0.505 * 0.2, rel=1e-12)
+    # A cosine, not a line (which is also 0.505 halfway): slow at first, fast mid-way.
+    quarter = 0.01 + 0.99 * (2 + np.sqrt(2)) / 4
+    assert rates[250] == pytest.approx(quarter * 0.2, rel=1e-12)
+    assert rates[750] == pytest.approx((1.01 - quarter) * 0.2, rel=1e-12)
+    assert np.all(np.diff(rates) < 0)
+    constant = TrainSettings(iterations=1000, lr=0.2)
+    assert {training.learning_rate(constant, step) for step in (0, 500, 999)} == {0.2}
+
+
+def test_training_sets_the_scheduled_rate_at_every_step(data, monkeypatch):
+    settings = TrainSettings(
+        iterations=5, batch_size=2, optimizer="sgd", lr=0.01, lr_schedule="cosine"
+    )
+    rates = []
+    make_optimizer = training.make_optimizer
+
+    def recording(modules, settings):
+        optimizer = make_optimizer(modules, settings)
+        step = optimizer.step
+
+        def recorded_step(*args, **kwargs):
+            rates.append(optimizer.param_groups[0]["lr"])
+            return step(*args, **kwargs)
+
+        optimizer.step = recorded_step
+        return optimizer
+
+    monkeypatch.setattr(training, "make_optimizer", recording)
+    train_backbone(tiny_model(), data, settings, quiet=True)
+    cosine = [0.01 + 0.99 * (1 + np.cos(np.pi * step / 5)) / 2 for step in range(5)]
+    assert rates == pytest.approx([0.01 * c for c in cosine], rel=1e-12)
+
+
+class NaNPoseNet(PoseNet):
+    """A backbone whose positions are NaN: the loss is NaN at the first step."""
+
+    def forward(self, images):
+        output = super().forward(images)
+        return PoseOutput(output.positions * float("nan"), output.quaternions, output.features)
+
+
+@pytest.mark.parametrize(
+    "model, settings",
+    [
+        (lambda: NaNPoseNet(input_size=32, width=0.125, feature_dim=32), SETTINGS),
+        (tiny_model, TrainSettings(iterations=50, batch_size=4, optimizer="sgd", lr=1e12)),
+    ],
+    ids=["nan output", "huge learning rate"],
+)
+def test_a_non_finite_loss_stops_training_with_a_clear_error(data, tmp_path, model, settings):
+    checkpoint = tmp_path / "model.pt"
+    with pytest.raises(DataError, match=r"training diverged at step \d+ \(loss (nan|inf)"):
+        train_backbone(model(), data, settings, checkpoint, key="k", quiet=True)
+    assert not checkpoint.exists() or not load_checkpoint(checkpoint)["complete"]
 
 
 def test_complete_checkpoint_is_reused(data, tmp_path):

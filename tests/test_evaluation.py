@@ -1,0 +1,99 @@
+"""The headline numbers: summarise() on answers with known errors, and timed evaluation."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from relocfw.data.frames import Frame
+from relocfw.evaluation import MethodResult, evaluate, summarise
+from relocfw.values import Crop, Localization, Pose
+
+IDENTITY = (1.0, 0.0, 0.0, 0.0)
+
+
+def about_z(degrees: float) -> tuple[float, float, float, float]:
+    half = np.radians(degrees) / 2
+    return (np.cos(half), 0.0, 0.0, np.sin(half))
+
+
+# Per query: position error (m, along x), orientation error (deg, about z), seconds,
+# network passes, crops scored. Chosen so that medians and means differ.
+ERRORS = [
+    (0.1, 2.0, 0.010, 1.0, 1),
+    (0.4, 14.0, 0.020, 12.5, 30),
+    (0.6, 5.0, 0.030, 3.0, 3),  # too far
+    (0.2, 20.0, 0.040, 2.0, 2),  # turned too much
+    (3.0, 90.0, 0.500, 4.0, 4),  # an outlier in everything
+]
+
+
+def known_result() -> MethodResult:
+    frames, answers = [], []
+    for i, (metres, degrees, seconds, passes, crops) in enumerate(ERRORS):
+        truth = Pose(np.array([1.0, 2.0, 3.0]), np.array(IDENTITY))
+        frames.append(Frame(f"q{i}", Path(f"q{i}.png"), truth))
+        estimate = Pose(truth.position + [metres, 0.0, 0.0], np.array(about_z(degrees)))
+        answer = Localization(estimate, Crop(0, 0, 10), 0.5, crops, seconds, network_passes=passes)
+        answers.append(answer)
+    return MethodResult("known", tuple(frames), tuple(answers))
+
+
+def test_summary_holds_medians_means_share_and_costs():
+    summary = summarise(known_result())
+    assert summary["method"] == "known" and summary["queries"] == 5
+    assert summary["median_position_m"] == pytest.approx(0.4)
+    assert summary["mean_position_m"] == pytest.approx(4.3 / 5)
+    assert summary["median_orientation_deg"] == pytest.approx(14.0)
+    assert summary["mean_orientation_deg"] == pytest.approx(131.0 / 5)
+    # Within 0.5 m AND 15 deg: only the first two.
+    assert summary["share_within_0.5m_15deg"] == pytest.approx(2 / 5)
+    assert summary["median_seconds_per_query"] == pytest.approx(0.030)
+    assert summary["mean_seconds_per_query"] == pytest.approx(0.600 / 5)
+    assert summary["mean_network_passes"] == pytest.approx(22.5 / 5)
+    assert summary["mean_crops_scored"] == pytest.approx(40 / 5)
+
+
+def test_the_thresholds_are_strict_inequalities():
+    truth = Pose(np.zeros(3), np.array(IDENTITY))
+    frames = (Frame("a", Path("a.png"), truth), Frame("b", Path("b.png"), truth))
+    on_the_line = Pose(np.array([0.5, 0.0, 0.0]), np.array(IDENTITY))
+    inside = Pose(np.array([0.499, 0.0, 0.0]), np.array(about_z(14.99)))
+    answers = tuple(Localization(p, Crop(0, 0, 1), 0.0, 1, 0.0) for p in (on_the_line, inside))
+    assert summarise(MethodResult("edge", frames, answers))["share_within_0.5m_15deg"] == 0.5
+
+
+class CountingRelocalizer:
+    """Answers with the identity pose; each answer's `evaluations` is its call number."""
+
+    def __init__(self):
+        self.seen = []
+
+    def localize(self, image):
+        self.seen.append(int(image[0, 0, 0]))
+        call = len(self.seen)
+        return Localization(Pose(np.zeros(3), np.array(IDENTITY)), Crop(0, 0, 1), 0.0, call, 0.0)
+
+
+def images_and_frames(count):
+    images = [np.full((2, 3, 3), i, dtype=np.uint8) for i in range(count)]
+    pose = Pose(np.zeros(3), np.array(IDENTITY))
+    return [Frame(f"f{i}", Path(f"f{i}.png"), pose) for i in range(count)], images
+
+
+def test_warm_up_localizes_the_first_image_once_more_and_keeps_it_out_of_the_answers():
+    frames, images = images_and_frames(4)
+    relocalizer = CountingRelocalizer()
+    result = evaluate("m", relocalizer, frames, images, quiet=True, warm_up=True)
+    assert relocalizer.seen == [0, 0, 1, 2, 3]
+    # The answers are those of calls 2..5: the warm-up's answer (call 1) is dropped.
+    assert [a.evaluations for a in result.answers] == [2, 3, 4, 5]
+    assert result.frames == tuple(frames)
+
+
+def test_without_warm_up_every_image_is_localized_once():
+    frames, images = images_and_frames(3)
+    relocalizer = CountingRelocalizer()
+    result = evaluate("m", relocalizer, frames, images, quiet=True, warm_up=False)
+    assert relocalizer.seen == [0, 1, 2]
+    assert [a.evaluations for a in result.answers] == [1, 2, 3]

@@ -1,0 +1,75 @@
+"""task=localize's files: poses.txt in TUM format, with TUM timestamps where names are times."""
+
+import csv
+
+import cv2
+import numpy as np
+import pytest
+
+from relocfw.localize_job import localize_images
+from relocfw.values import Crop, Localization, Pose
+
+
+class GreyLevelRelocalizer:
+    """Answers x = the image's grey level, rotated 2 x grey level degrees about z."""
+
+    def localize(self, image):
+        level = float(image[0, 0, 0])
+        half = np.radians(2 * level) / 2
+        pose = Pose(np.array([level, 1.0, 2.0]), np.array([np.cos(half), 0, 0, np.sin(half)]))
+        return Localization(pose, Crop(0, 0, 4), 0.25, 1, 0.0)
+
+
+def write_images(folder, names):
+    folder.mkdir()
+    paths = []
+    for level, name in enumerate(names, start=10):
+        path = folder / name
+        cv2.imwrite(str(path), np.full((4, 6, 3), level, dtype=np.uint8))
+        paths.append(path)
+    return paths
+
+
+def tum_rows(run_dir):
+    lines = (run_dir / "poses.txt").read_text().splitlines()
+    assert lines[0] == "# timestamp tx ty tz qx qy qz qw (camera-to-world)"
+    return [line.split(" ") for line in lines[1:]]
+
+
+@pytest.mark.parametrize(
+    "names, stamps",
+    [
+        # TUM names images by their time: kept verbatim, digits and all.
+        (
+            ["1305031102.175304.png", "1305031102.211214.png"],
+            ["1305031102.175304", "1305031102.211214"],
+        ),
+        (["17.png", "0018.jpg"], ["17", "0018"]),
+        # Other names: the image's position in the list.
+        (["frame-a.png", "frame-b.png", "frame-c.png"], ["0", "1", "2"]),
+        (["1305031102.175304.png", "frame.png"], ["1305031102.175304", "1"]),
+        # Names float() would take but TUM tools cannot read back.
+        (["nan.png", "inf.png", "1_000.png", "1e5.png"], ["0", "1", "2", "3"]),
+    ],
+    ids=["tum times", "integers", "names", "mixed", "not plain decimals"],
+)
+def test_poses_txt_timestamps_are_numeric_names_or_positions(tmp_path, names, stamps):
+    paths = write_images(tmp_path / "images", names)
+    run_dir = tmp_path / "run"
+    localize_images(GreyLevelRelocalizer(), paths, run_dir, quiet=True)
+    rows = tum_rows(run_dir)
+    assert [row[0] for row in rows] == stamps
+    with open(run_dir / "localization.csv") as stream:
+        table = list(csv.DictReader(stream))
+    assert [row["timestamp"] for row in table] == stamps
+    assert [row["image"] for row in table] == [str(p) for p in paths]
+
+
+def test_poses_txt_rows_are_position_then_quaternion_with_w_last(tmp_path):
+    paths = write_images(tmp_path / "images", ["1.png", "2.png"])
+    localize_images(GreyLevelRelocalizer(), paths, tmp_path / "run", quiet=True)
+    values = np.array([[float(v) for v in row] for row in tum_rows(tmp_path / "run")])
+    for row, level in zip(values, (10, 11), strict=True):
+        half = np.radians(2 * level) / 2
+        assert np.allclose(row[1:4], [level, 1.0, 2.0])
+        assert np.allclose(row[4:], [0.0, 0.0, np.sin(half), np.cos(half)])

@@ -1,0 +1,99 @@
+"""Model files: a saved and reloaded Relocalizer answers exactly as the original."""
+
+import numpy as np
+import pytest
+import torch
+
+from relocfw import Relocalizer
+from relocfw.data.frames import read_images
+from relocfw.data.sevenscenes import load_sevenscenes
+from relocfw.model_file import load_model, save_model
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.plugins.exhaustive_index import ExhaustiveIndex
+from relocfw.plugins.kmeans_index import KMeansIndex
+from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.sweep_crop import SweepCrop
+
+
+@pytest.fixture(scope="module")
+def scene(tiny_scene):
+    train = load_sevenscenes(tiny_scene, None, "train")
+    test = load_sevenscenes(tiny_scene, None, "test")
+    return train, read_images(train, quiet=True), read_images(test, quiet=True)
+
+
+def tiny_backbone(**options):
+    """A seeded tiny PoseNet and the options it was built with."""
+    options = {"input_size": 32, "width": 0.0625, "feature_dim": 16, **options}
+    torch.manual_seed(0)
+    backbone = PoseNet(**options)
+    # Training would set these; values away from the defaults show they are saved.
+    backbone.set_position_normalisation(np.array([1.0, -2.0, 0.5]), 3.0)
+    return backbone, options
+
+
+def round_trip(relocalizer, options, tmp_path):
+    path = save_model(tmp_path / "model.relocfw", relocalizer, options, {"scene": "tiny"})
+    loaded = load_model(path)
+    assert loaded.metadata == {"scene": "tiny"}
+    return loaded
+
+
+def answers(relocalizer, images, seed=None):
+    """Every image's answer; with a seed, torch is re-seeded before each query."""
+    found = []
+    for image in images:
+        if seed is not None:
+            torch.manual_seed(seed)
+        found.append(relocalizer.localize(image))
+    return found
+
+
+def assert_same_answers(got, expected):
+    for a, b in zip(got, expected, strict=True):
+        assert a.crop == b.crop
+        assert a.distance == pytest.approx(b.distance, rel=1e-9, abs=1e-12)
+        assert np.allclose(a.pose.position, b.pose.position, rtol=1e-9, atol=1e-12)
+        assert np.allclose(a.pose.quaternion, b.pose.quaternion, rtol=1e-9, atol=1e-12)
+        assert np.array_equal(
+            [a.position_spread, a.orientation_spread_deg],
+            [b.position_spread, b.orientation_spread_deg],
+            equal_nan=True,
+        )
+
+
+def test_retrieval_model_round_trip_answers_with_the_same_map_poses(scene, tmp_path):
+    frames, train, test = scene
+    backbone, options = tiny_backbone()
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), retrieval_k=2)
+    relocalizer.fit(train, [f.pose for f in frames])
+    loaded = round_trip(relocalizer, {"backbone": options}, tmp_path)
+    assert loaded.retrieval_k == 2
+    assert len(loaded.map_poses) == len(frames)
+    for saved, original in zip(loaded.map_poses, frames, strict=True):
+        assert np.allclose(saved.position, original.pose.position, rtol=0, atol=1e-12)
+        assert np.allclose(saved.quaternion, original.pose.quaternion, rtol=0, atol=1e-12)
+    expected = answers(relocalizer, test)
+    assert_same_answers(answers(loaded, test), expected)
+    # Retrieval really answered: the network's own pose of the same crop is elsewhere.
+    network = Relocalizer(backbone, relocalizer.index, SweepCrop())
+    own = answers(network, test)
+    assert all(
+        not np.allclose(a.pose.position, b.pose.position)
+        for a, b in zip(expected, own, strict=True)
+    )
+
+
+def test_mc_sampling_model_round_trip_gives_the_same_poses_and_spreads(scene, tmp_path):
+    frames, train, test = scene
+    backbone, options = tiny_backbone(mc_samples=8)
+    relocalizer = Relocalizer(backbone, KMeansIndex(k=3), CentreCrop())
+    relocalizer.fit(train)
+    loaded = round_trip(relocalizer, {"backbone": options, "index": {"k": 3}}, tmp_path)
+    assert loaded.backbone.mc_samples == 8
+    expected = answers(relocalizer, test, seed=7)
+    assert all(np.isfinite(a.position_spread) and a.position_spread > 0 for a in expected)
+    assert_same_answers(answers(loaded, test, seed=7), expected)
+    # Sampling is live: without the same seed the answers move.
+    other = answers(loaded, test, seed=8)
+    assert not np.allclose(other[0].pose.position, expected[0].pose.position)
