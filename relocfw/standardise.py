@@ -10,11 +10,14 @@ import torch
 from relocfw.errors import DataError
 
 ROWS_AT_A_TIME = 16384  # chunk size for work over a whole map (10^6 rows is 8 GB)
-# No dimension's scale is below this fraction of the median spread. A nearly dead ReLU
-# unit (std 1e-9 where the others have ~1) would otherwise turn a 1e-6 wobble into a
-# z-score of 1000 and decide every distance alone; at 1% of the typical spread such a
-# unit counts no more than a unit with 1/100 of the typical variation.
-FLOOR_FRACTION = 0.01
+# A dimension whose spread on the map is below this fraction of the median spread is a
+# (nearly) dead ReLU unit: it has no spread of its own to standardise by. Dividing by
+# its own std (1e-9) would turn a 1e-6 wobble into a z-score of 1000 that decides
+# every distance alone, and dividing by a small floor would still make a unit that
+# fires on a query crop but never on the map outweigh every live unit (a trained
+# demo map has about 900 of 2048 units dead). Such dimensions are scaled like a
+# typical one instead: by the median spread.
+DEAD_FRACTION = 0.01
 # A spread below this fraction of a dimension's mean is rounding in the mean itself
 # (a constant 0.1 leaves a std near 1e-17), not variation.
 ROUNDING = 1e-12
@@ -27,25 +30,27 @@ def row_chunks(count: int, rows: int = ROWS_AT_A_TIME) -> Iterator[slice]:
 
 
 def floored_scales(std: np.ndarray, mean: np.ndarray) -> np.ndarray:
-    """Each dimension's std, raised to FLOOR_FRACTION x the median of those that vary.
+    """Each dimension's std; the median spread for (nearly) dead dimensions.
 
-    Where no dimension varies at all there is no typical spread to take a fraction
-    of, and every scale is 1.0 (descriptors are then only centred).
+    A dimension is dead when its std is below DEAD_FRACTION x the median std of the
+    dimensions that vary. Where no dimension varies at all there is no typical spread,
+    and every scale is 1.0 (descriptors are then only centred).
     """
     varies = std > ROUNDING * np.abs(mean)
     if not varies.any():
         return np.ones_like(std)
-    return np.maximum(std, FLOOR_FRACTION * np.median(std[varies]))
+    typical = np.median(std[varies])
+    return np.where(varies & (std >= DEAD_FRACTION * typical), std, typical)
 
 
 class ZScore:
     """Per-dimension standardisation fitted on the map's descriptors.
 
-    Each dimension is divided by its spread, floored at FLOOR_FRACTION (1%) of the
-    median spread of the dimensions that vary: a constant or nearly dead unit (dead
-    ReLUs) is neither a division by zero nor, when a query happens to move it a
-    little, a z-score in the millions that outweighs every other dimension. Where no
-    dimension varies, every scale is 1. Fitting goes chunk by chunk in float64 (mean,
+    Each dimension is divided by its spread; a constant or nearly dead unit (spread
+    below DEAD_FRACTION, 1%, of the median spread: dead ReLUs) is divided by the median
+    spread instead, like a typical unit. It is then neither a division by zero nor,
+    when a query crop moves it, a z-score in the millions or hundreds that outweighs
+    every live dimension. Where no dimension varies, every scale is 1. Fitting goes chunk by chunk in float64 (mean,
     then spread about it), so a float32 map of any size is never copied whole.
     """
 

@@ -6,7 +6,7 @@ import pytest
 from relocfw.errors import DataError
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.standardise import (
-    FLOOR_FRACTION,
+    DEAD_FRACTION,
     ZScore,
     checked_descriptors,
     k_nearest,
@@ -43,24 +43,44 @@ def test_a_near_dead_unit_does_not_decide_the_nearest_neighbour():
     assert np.array_equal(order, expected)
 
 
-def test_the_scale_floor_is_a_fraction_of_the_median_spread():
+def test_a_near_dead_unit_is_scaled_like_a_typical_one():
     points, _ = map_with_a_near_dead_unit()
     zscore = ZScore().fit(points)
     spreads = points.std(axis=0)
     assert np.allclose(zscore.std[:3], spreads[:3], rtol=1e-12)
-    assert zscore.std[3] == pytest.approx(FLOOR_FRACTION * np.median(spreads))
+    assert zscore.std[3] == pytest.approx(np.median(spreads))
 
 
-def test_constant_dimensions_get_the_floor_and_a_constant_map_unit_scales():
+def test_dead_units_are_scaled_like_typical_ones_and_live_ones_keep_their_spread():
     rng = np.random.default_rng(1)
-    points = rng.normal(size=(40, 5)) * [1.0, 2.0, 3.0, 1.0, 1.0]
+    points = rng.normal(size=(40, 6)) * [1.0, 2.0, 3.0, 1.0, 1.0, 1.0]
     points[:, 3] = 0.1  # not exactly representable: rounding leaves a std near 1e-17
     points[:, 4] = 0.0
+    points[:, 5] *= 0.05  # a live unit with a small spread (5% of typical) keeps it
     zscore = ZScore().fit(points)
-    floor = FLOOR_FRACTION * np.median(points[:, :3].std(axis=0))
-    assert zscore.std[3:] == pytest.approx([floor, floor])
+    spreads = points.std(axis=0)
+    typical = np.median(spreads[[0, 1, 2, 5]])
+    assert DEAD_FRACTION * typical < spreads[5] < typical
+    assert zscore.std[3:5] == pytest.approx([typical, typical])
+    assert np.allclose(zscore.std[[0, 1, 2, 5]], spreads[[0, 1, 2, 5]], rtol=1e-12)
     assert np.all(np.isfinite(zscore(points)))
     assert np.array_equal(ZScore().fit(np.full((6, 3), 0.1)).std, np.ones(3))
+
+
+def test_a_unit_dead_on_the_map_that_fires_on_a_crop_weighs_like_a_typical_unit():
+    # Half the units of a trained map can be dead (never fire on the map). A crop that
+    # fires one of them by the typical spread is one z-unit from the map, as a crop off
+    # by one typical spread in a live unit would be: not 100 (a 1% floor), not 0.1 (a
+    # fixed scale of 1 where descriptors vary by about 0.1).
+    rng = np.random.default_rng(2)
+    points = np.zeros((60, 8))
+    points[:, :4] = 0.1 * rng.normal(size=(60, 4))
+    index = ExhaustiveIndex()
+    index.fit(points)
+    typical = np.median(points[:, :4].std(axis=0))
+    crop = points[7].copy()
+    crop[5] = typical  # fires a unit that is zero on every map image
+    assert index.distance(crop[None])[0] == pytest.approx(1.0, rel=1e-9)
 
 
 def test_row_chunks_cover_every_row_once_in_order():
