@@ -95,14 +95,18 @@ def test_sequence_lists_replace_the_split_files(stairs_sample):
     assert {f.name.split("/")[0] for f in dataset.frames("train")} == {"seq-01", "seq-02"}
     assert {f.name.split("/")[0] for f in dataset.frames("test")} == {"seq-03"}
     # Only the list given is replaced; the other split still reads its file.
-    only_test = SevenScenes(stairs_sample, "stairs", test_sequences=[3])
+    only_test = SevenScenes(stairs_sample, "stairs", test_sequences=[4])
     assert {f.name.split("/")[0] for f in only_test.frames("train")} == {"seq-02", "seq-03"}
+    assert {f.name.split("/")[0] for f in only_test.frames("test")} == {"seq-04"}
 
 
 @pytest.mark.parametrize(
     "options, message",
     [
         ({"train_sequences": [1, 2], "test_sequences": [2]}, "share [2]"),
+        # TrainSplit.txt lists 2 and 3: a test list of [3] alone would leak.
+        ({"test_sequences": [3]}, "train [2, 3] and test [3] share [3]"),
+        ({"train_sequences": [1, 4]}, "train [1, 4] and test [1, 4] share [1, 4]"),
         ({"train_sequences": []}, "dataset.train_sequences must be a non-empty list"),
         ({"test_sequences": [0]}, "dataset.test_sequences: sequence numbers are integers >= 1"),
         ({"test_sequences": 3}, "dataset.test_sequences must be a non-empty list"),

@@ -137,12 +137,16 @@ class SevenScenes:
             "train": checked_sequences("train_sequences", train_sequences),
             "test": checked_sequences("test_sequences", test_sequences),
         }
-        train, test = self.sequences["train"], self.sequences["test"]
-        if train is not None and test is not None and set(train) & set(test):
-            raise ConfigError(
-                f"dataset.train_sequences and dataset.test_sequences share "
-                f"{sorted(set(train) & set(test))}: a test frame would be in the map"
-            )
+        if train_sequences is not None or test_sequences is not None:
+            # The effective lists, a split file standing in for the list not given.
+            train = self.sequences["train"] or read_split(self.folder / SPLIT_FILES["train"])
+            test = self.sequences["test"] or read_split(self.folder / SPLIT_FILES["test"])
+            if set(train) & set(test):
+                raise ConfigError(
+                    f"dataset.train_sequences / dataset.test_sequences: train {train} and "
+                    f"test {test} share {sorted(set(train) & set(test))}: a test frame "
+                    "would be in the map"
+                )
 
     def frames(self, split: str) -> list[Frame]:
         return load_sevenscenes(self.folder, None, split, self.on_error, self.sequences.get(split))
