@@ -36,16 +36,24 @@ class Strip:
     Every square crop of the original image is a window of this strip: scaling once
     and cutting windows is the same as cutting then scaling each crop (up to
     sub-pixel rounding of the offset), and far cheaper when a search tries many.
+
+    With `crop_scale` > 1 (a model trained with PoseNet's crops, see
+    `TrainSettings.crop_scale`) the short side is scaled to crop_scale x the input and
+    the window of a crop is the input-sized square at the crop's centre: the network
+    sees the central 1/crop_scale of every crop, the field of view it was trained on.
     """
 
-    def __init__(self, image: np.ndarray, input_size: int) -> None:
+    def __init__(self, image: np.ndarray, input_size: int, crop_scale: float = 1.0) -> None:
         self.height, self.width = image.shape[:2]
-        side, _ = crop_side_and_span(self.width, self.height)
-        self.scale = input_size / side
+        short, _ = crop_side_and_span(self.width, self.height)
         self.input_size = input_size
+        self.side = max(input_size, round(input_size * crop_scale))  # a crop's side here
+        self.scale = self.side / short
+        # Where the input-sized window sits inside a crop's scaled square.
+        self.margin = (self.side - input_size) / 2
         size = (
-            max(input_size, round(self.width * self.scale)),
-            max(input_size, round(self.height * self.scale)),
+            max(self.side, round(self.width * self.scale)),
+            max(self.side, round(self.height * self.scale)),
         )
         interpolation = cv2.INTER_AREA if self.scale < 1 else cv2.INTER_LINEAR
         scaled = cv2.resize(image, size, interpolation=interpolation)
@@ -53,8 +61,8 @@ class Strip:
 
     def window(self, crop: Crop) -> tuple[int, int]:
         """Top-left corner in the strip of the window that shows `crop`."""
-        x = min(round(crop.x * self.scale), self.pixels.shape[2] - self.input_size)
-        y = min(round(crop.y * self.scale), self.pixels.shape[1] - self.input_size)
+        x = min(round(crop.x * self.scale + self.margin), self.pixels.shape[2] - self.input_size)
+        y = min(round(crop.y * self.scale + self.margin), self.pixels.shape[1] - self.input_size)
         return y, x
 
     def cut(self, corner: tuple[int, int]) -> torch.Tensor:

@@ -18,7 +18,7 @@ from relocfw.errors import DataError
 from relocfw.pipeline import Relocalizer
 from relocfw.values import Pose
 
-MODEL_FORMAT = 2  # 2: PoseNet input normalisation saved with the weights
+MODEL_FORMAT = 2  # 2: PoseNet input normalisation saved with the weights; crop_scale
 MODEL_KIND = "relocfw-model"
 
 
@@ -55,6 +55,7 @@ def save_model(
         "kind": MODEL_KIND,
         "format": MODEL_FORMAT,
         "retrieval_k": relocalizer.retrieval_k,
+        "crop_scale": relocalizer.crop_scale,
         "metadata": metadata,
     }
     for name, part in parts.items():
@@ -95,7 +96,14 @@ def load_model(
     except (KeyError, TypeError, RuntimeError) as error:
         raise DataError(f"{path}: damaged or incompatible model file ({error})") from error
     relocalizer = Relocalizer(
-        backbone, index, crop, device, batch_size, payload["retrieval_k"], scoring
+        backbone,
+        index,
+        crop,
+        device,
+        batch_size,
+        payload["retrieval_k"],
+        scoring,
+        payload.get("crop_scale", 1.0),
     )
     if "map_poses" in payload:
         relocalizer.map_poses = [Pose(row[:3], row[3:]) for row in payload["map_poses"].numpy()]

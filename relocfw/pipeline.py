@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from functools import cached_property
 from pathlib import Path
 from typing import NamedTuple
 
@@ -36,12 +37,18 @@ class QueryDistance:
     """The CropDistance a search gets: scores crops and carries the query's seed.
 
     `query_seed` (the image's fingerprint) lets a randomised search give every query
-    its own stream (see relocfw.interfaces.query_seed).
+    its own stream (see relocfw.interfaces.query_seed). It is computed only when a
+    search reads it: hashing a full-resolution image costs 1-7 ms, which searches
+    that draw no random numbers (centre, sweep) should not pay.
     """
 
-    def __init__(self, score: CropDistance, query_seed: int) -> None:
+    def __init__(self, score: CropDistance, image: np.ndarray) -> None:
         self.score = score
-        self.query_seed = query_seed
+        self.image = image
+
+    @cached_property
+    def query_seed(self) -> int:
+        return image_fingerprint(self.image)
 
     def __call__(self, crops: Sequence[Crop]) -> np.ndarray:
         return self.score(crops)
@@ -62,7 +69,7 @@ def check_retrieval(index: SimilarityIndex, retrieval_k: int) -> None:
         )
 
 
-def check_scoring(scoring: str, backbone: Backbone) -> None:
+def check_scoring(scoring: str, backbone: Backbone, crop_scale: float = 1.0) -> None:
     """Raise ConfigError unless `backbone` can score crops the way `scoring` names."""
     if scoring not in SCORINGS:
         raise ConfigError(f"scoring must be one of {', '.join(SCORINGS)}, got {scoring!r}")
@@ -71,6 +78,14 @@ def check_scoring(scoring: str, backbone: Backbone) -> None:
             f"scoring=shared needs a backbone with feature_maps and describe_pooled; "
             f"{type(backbone).__name__} lacks them (use scoring=plain)"
         )
+    if scoring == "shared" and crop_scale != 1.0:
+        # Shared scoring pools windows that span the strip's whole short side.
+        raise ConfigError(
+            f"scoring=shared needs train.crop_scale=1.0 (a window that spans the short "
+            f"side), got {crop_scale}; use scoring=plain"
+        )
+    if not 1.0 <= crop_scale <= 4.0:
+        raise ConfigError(f"train.crop_scale must be in [1, 4], got {crop_scale}")
 
 
 class Relocalizer:
@@ -95,6 +110,9 @@ class Relocalizer:
             (relocfw.window_pooling); the chosen crop then goes through the plain path
             once, so the pose is the plain pose of that crop. Needs a backbone with
             `feature_maps` and `describe_pooled`.
+        crop_scale: the `train.crop_scale` the backbone was trained with. The network
+            sees the central 1/crop_scale of every crop (relocfw.imaging.Strip), the
+            field of view of its training crops; 1.0 sees the whole crop.
     """
 
     def __init__(
@@ -106,9 +124,11 @@ class Relocalizer:
         batch_size: int = 64,
         retrieval_k: int = 0,
         scoring: str = "plain",
+        crop_scale: float = 1.0,
     ) -> None:
-        check_scoring(scoring, backbone)
+        check_scoring(scoring, backbone, float(crop_scale))
         self.scoring = scoring
+        self.crop_scale = float(crop_scale)
         self.device = torch.device(device)
         self.backbone = backbone.to(self.device).eval()
         self.memory_format = torch.contiguous_format
@@ -163,7 +183,10 @@ class Relocalizer:
         progress = Progress(len(images), "describing map images", quiet=quiet)
         features = []
         for start in range(0, len(images), self.batch_size):
-            strips = [Strip(image, size) for image in images[start : start + self.batch_size]]
+            strips = [
+                Strip(image, size, self.crop_scale)
+                for image in images[start : start + self.batch_size]
+            ]
             batch = torch.stack([s.cut(s.window(s.centre_crop())) for s in strips])
             features.append(self._forward(batch).features)
             progress.advance(len(strips))
@@ -229,7 +252,7 @@ class Relocalizer:
     def localize(self, image: np.ndarray) -> Localization:
         """Pose of one RGB image (H x W x 3 uint8) through the crop search."""
         start = time.perf_counter()
-        strip = Strip(image, self.backbone.input_size)
+        strip = Strip(image, self.backbone.input_size, self.crop_scale)
         # Network answers per strip window: offsets that round to the same window are
         # the same network input, so it is computed once.
         results: dict[tuple[int, int], tuple[float, NetworkAnswers]] = {}
@@ -266,7 +289,7 @@ class Relocalizer:
             evaluate(corners)
             return np.array([results[c][0] for c in corners])
 
-        query = QueryDistance(distance, image_fingerprint(image))
+        query = QueryDistance(distance, image)
         chosen = self.crop.search(strip.width, strip.height, query)
         corner = strip.window(chosen)
         evaluate([corner])

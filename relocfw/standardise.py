@@ -50,8 +50,9 @@ class ZScore:
     below DEAD_FRACTION, 1%, of the median spread: dead ReLUs) is divided by the median
     spread instead, like a typical unit. It is then neither a division by zero nor,
     when a query crop moves it, a z-score in the millions or hundreds that outweighs
-    every live dimension. Where no dimension varies, every scale is 1. Fitting goes chunk by chunk in float64 (mean,
-    then spread about it), so a float32 map of any size is never copied whole.
+    every live dimension. Where no dimension varies, every scale is 1. Fitting goes
+    chunk by chunk in float64 (mean, then spread about it), so a float32 map of any
+    size is never copied whole.
     """
 
     def fit(self, features: np.ndarray, rows_at_a_time: int = ROWS_AT_A_TIME) -> ZScore:

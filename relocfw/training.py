@@ -143,8 +143,7 @@ class TrainingImages:
         # Built on the first batch, not up front: a reused checkpoint never needs them.
         # Strips at crop_scale x the input: windows of input size then see 1/crop_scale
         # of the short side (TrainSettings.crop_scale).
-        side = max(self.input_size, round(self.input_size * self.crop_scale))
-        return [Strip(image, side) for image in self.images]
+        return [Strip(image, self.input_size, self.crop_scale) for image in self.images]
 
     def __len__(self) -> int:
         return len(self.images)

@@ -96,18 +96,30 @@ def test_ga_beats_random_sampling_with_the_same_budget():
 
 
 def test_each_query_gets_its_own_stream_and_the_same_query_the_same_one():
-    def first_generation(query_seed):
+    class Seeded:
+        def __init__(self, distance, query_seed):
+            self.distance, self.query_seed = distance, query_seed
+
+        def __call__(self, crops):
+            return self.distance(crops)
+
+    def first_generation(query_seed, seed=3):
         distance = Recorder(bowl(50))
-        GeneticCropSearch(seed=3).search(640, 480, QueryDistance(distance, query_seed))
+        GeneticCropSearch(seed=seed).search(640, 480, Seeded(distance, query_seed))
         return distance.calls[0]
 
     assert first_generation(11) == first_generation(11)
     assert first_generation(11) != first_generation(12)
     # The search's own seed still matters for a fixed query.
-    distance_a, distance_b = Recorder(bowl(50)), Recorder(bowl(50))
-    GeneticCropSearch(seed=1).search(640, 480, QueryDistance(distance_a, 11))
-    GeneticCropSearch(seed=2).search(640, 480, QueryDistance(distance_b, 11))
-    assert distance_a.calls[0] != distance_b.calls[0]
+    assert first_generation(11, seed=1) != first_generation(11, seed=2)
+
+
+def test_the_query_seed_is_the_image_fingerprint_computed_only_when_asked():
+    image = np.random.default_rng(0).integers(0, 256, size=(36, 48, 3), dtype=np.uint8)
+    query = QueryDistance(lambda crops: np.zeros(len(crops)), image)
+    assert "query_seed" not in vars(query)  # a centre crop or sweep never pays the hash
+    assert query_seed(query) == image_fingerprint(image) == image_fingerprint(image.copy())
+    assert image_fingerprint(image[:, ::-1]) != image_fingerprint(image)
 
 
 class SeedRecorder(CropSearch):

@@ -97,3 +97,14 @@ def test_mc_sampling_model_round_trip_gives_the_same_poses_and_spreads(scene, tm
     # Sampling is live: without the same seed the answers move.
     other = answers(loaded, test, seed=8)
     assert not np.allclose(other[0].pose.position, expected[0].pose.position)
+
+
+def test_a_model_trained_on_posenet_crops_is_loaded_with_its_crop_scale(scene, tmp_path):
+    _, train_images, test_images = scene
+    backbone, options = tiny_backbone()
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), crop_scale=256 / 224)
+    relocalizer.fit(train_images)
+    expected = answers(relocalizer, test_images)
+    loaded = round_trip(relocalizer, {"backbone": options}, tmp_path)
+    assert loaded.crop_scale == pytest.approx(256 / 224)
+    assert_same_answers(answers(loaded, test_images), expected)

@@ -89,3 +89,25 @@ def test_the_strip_short_side_is_the_input_and_the_last_window_reaches_the_far_e
     y, x = strip.window(crop_at(span, width, height))
     assert (y if height > width else x) + 32 == along[0]
     assert (x if height > width else y) == 0
+
+
+@pytest.mark.parametrize("width, height", [(400, 300), (300, 400)])
+def test_with_a_crop_scale_the_window_is_the_centre_of_the_crop_resized(width, height):
+    # A model trained on PoseNet's crops (crop_scale 256/224) sees the central
+    # 224/256 of each crop at query time: crop, keep its centre, resize.
+    image = smooth_image(width, height)
+    strip = Strip(image, 56, crop_scale=256 / 224)  # 56 x 256/224 = 64: no rounding
+    _, span = crop_side_and_span(width, height)
+    for offset in (0, span // 2, span):
+        crop = crop_at(offset, width, height)
+        inner = round(crop.size * 224 / 256)
+        start = (crop.size - inner) // 2
+        square = image[crop.y : crop.y + crop.size, crop.x : crop.x + crop.size]
+        centre = square[start : start + inner, start : start + inner]
+        expected = cv2.resize(centre, (56, 56), interpolation=cv2.INTER_AREA).astype(float)
+        got = strip.cut(strip.window(crop)).numpy().transpose(1, 2, 0)
+        error = np.abs(got - expected).mean()
+        assert error < 3.0, f"offset {offset}: {error:.2f} grey levels off"
+        # The whole crop resized (what crop_scale 1 shows) is clearly something else.
+        whole = crop_then_resize(image, offset, 56)
+        assert np.abs(got - whole).mean() > 2 * error
