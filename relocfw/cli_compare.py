@@ -28,6 +28,17 @@ def compose_method(overrides: list[str], name: str) -> tuple[DictConfig, Mapping
     return cfg, cfg.hydra.runtime.choices
 
 
+def row_label(name: str, overrides: list[str], method_cfg: DictConfig) -> str:
+    """The row's name, saying so when dropout is sampled although the row did not ask.
+
+    `backbone.mc_samples=N` on the command line applies to every row: a row called
+    "PoseNet" would otherwise hide that its answers are Monte Carlo means.
+    """
+    samples = int(method_cfg.backbone.get("mc_samples", 0))
+    asked = any(o.startswith(("backbone.mc_samples", "backbone=")) for o in overrides)
+    return f"{name} (x{samples} MC dropout)" if samples and not asked else name
+
+
 def run_compare(cfg: DictConfig, device: torch.device) -> None:
     """Every method of compare.methods on every scene; each model trained once."""
     methods = OmegaConf.to_container(cfg.compare.methods, resolve=True)
@@ -37,16 +48,21 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
     reference = str(cfg.compare.reference)
     if reference not in methods:
         raise ConfigError(f"compare.reference={reference!r} is not in compare.methods")
-    base = [o for o in HydraConfig.get().overrides.task if not o.startswith(("task=", "compare."))]
+    base = [
+        o
+        for o in HydraConfig.get().overrides.task
+        if not o.lstrip("~+").startswith(("task=", "compare."))
+    ]
     quiet = bool(cfg.quiet)
     crop_seeds = [int(s) for s in cfg.compare.crop_seeds or []]
     # Compose and build every method first: a typo fails before hours of training.
-    plans = {}
+    plans, rows = {}, {}
     for scene in scenes:
         scene_override = [f"dataset.scene={scene}"] if scene is not None else []
         for name, overrides in methods.items():
             method_cfg, choices = compose_method(base + scene_override + list(overrides), name)
             plans[scene, name] = (method_cfg, choices)
+            rows[name] = row_label(name, list(overrides), method_cfg)
     results, training, maps, seed_runs = {}, {}, {}, {}
     for scene in scenes:
         first_cfg, first_choices = plans[scene, next(iter(methods))]
@@ -59,14 +75,14 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
         seed_runs[label] = {}
         for name in methods:
             method_cfg, choices = plans[scene, name]
-            method = build_method(method_cfg, choices, label=name)
+            method = build_method(method_cfg, choices, label=rows[name])
             method.index.check_map_size(len(train[0]))
             prepare_model(method_cfg, method, train, device)
             relocalizer = method.relocalizer(device, int(cfg.query_batch_size))
-            result, features = jobs.run_method(name, relocalizer, train, test, quiet)
-            results[label][name] = result
+            result, features = jobs.run_method(rows[name], relocalizer, train, test, quiet)
+            results[label][rows[name]] = result
             if "seed" in method_cfg.crop and len(crop_seeds) > 1:
-                seed_runs[label][name] = rerun_crop_seeds(
+                seed_runs[label][rows[name]] = rerun_crop_seeds(
                     method_cfg, choices, relocalizer, result, test, crop_seeds, quiet
                 )
             if maps[label] is None and hasattr(method.index, "centres"):
@@ -77,7 +93,7 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
         results,
         training,
         maps,
-        reference,
+        rows[reference],
         Path(HydraConfig.get().runtime.output_dir),
         seed=int(cfg.seed),
         seed_runs=seed_runs,

@@ -147,6 +147,19 @@ def test_the_centre_crop_row_says_when_it_samples_dropout(tmp_path, cache):
     assert "posenet (centre crop)" not in result.stdout
 
 
+def test_compare_rows_say_when_the_command_line_samples_dropout(tmp_path, cache):
+    run_dir = tmp_path / "compare"
+    methods = '+compare.methods={PoseNet:["crop=centre"],Bayes:["backbone.mc_samples=3"]}'
+    args = [*TINY_OVERRIDES, "task=compare", "~compare.methods", methods]
+    args += ["backbone.mc_samples=2", "crop=centre"]
+    result = relocfw([*args, f"hydra.run.dir={run_dir}"], tmp_path, cache)
+    assert result.returncode == 0, result.stderr
+    header = (run_dir / "comparison.csv").read_text().splitlines()[0]
+    # PoseNet did not ask for sampling but got it from the command line: it says so.
+    assert "PoseNet (x2 MC dropout) (m, deg)" in header
+    assert "Bayes (m, deg)" in header  # asked for its own samples: its name stands
+
+
 def test_corrupt_image_names_the_file(tmp_path, cache, tiny_scene):
     root = tmp_path / "data"
     shutil.copytree(tiny_scene, root / "room")
