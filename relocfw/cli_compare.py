@@ -112,13 +112,15 @@ def rerun_crop_seeds(
     """The method's test split again with each crop-search seed; model and map reused."""
     runs = {}
     configured = relocalizer.crop
-    for seed in crop_seeds:
-        if seed == int(method_cfg.crop.seed):
-            runs[seed] = result  # the run in the main table
-            continue
-        seeded = method_cfg.copy()
-        seeded.crop.seed = seed
-        relocalizer.crop = build(seeded, "crop", choices["crop"])
-        runs[seed] = evaluate(f"{result.method}, crop.seed={seed}", relocalizer, *test, quiet)
-    relocalizer.crop = configured
+    try:
+        for seed in crop_seeds:
+            if seed == int(method_cfg.crop.seed):
+                runs[seed] = result  # the run in the main table
+                continue
+            seeded = method_cfg.copy()
+            seeded.crop.seed = seed
+            relocalizer.crop = build(seeded, "crop", choices["crop"])
+            runs[seed] = evaluate(f"{result.method}, crop.seed={seed}", relocalizer, *test, quiet)
+    finally:
+        relocalizer.crop = configured
     return runs
