@@ -201,7 +201,8 @@ def check_pretrained(cfg: DictConfig, choices: Mapping[str, str], backbone: Back
         f"preset={preset} fine-tunes ImageNet weights (train.lr={cfg.train.lr}) and cannot "
         f"train backbone={choices['backbone']} from random initialisation: give "
         "backbone.weights=FILE (a torchvision GoogLeNet state_dict, see the README's "
-        "'ImageNet weights'), or choose a pretrained backbone (backbone=efficientnet_lite0), "
+        "'ImageNet weights'), or a pretrained backbone (backbone=efficientnet_lite0 with "
+        "backbone.pretrained=true), "
         "or train from scratch with preset=demo (pretrained_required=false trains anyway)"
     )
 

@@ -83,7 +83,8 @@ def load_model(
     if payload.get("format") != MODEL_FORMAT:
         raise DataError(
             f"{path} is model format {payload.get('format')}; this relocfw reads format "
-            f"{MODEL_FORMAT}: export it again with this version"
+            f"{MODEL_FORMAT}: run `relocfw task=relocalize` again with this version to "
+            "write a new one"
         )
     try:
         backbone_class = import_class(payload["backbone"]["class"], path)

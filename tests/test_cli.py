@@ -123,7 +123,7 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
         (["index=faiss", "index.kind=lsh"], "index.kind must be one of flat, ivf, hnsw"),
         (["index=faiss", "index.kind=ivf"], "nlist=1024 is more IVF cells than map"),
         (["preset=paper"], "preset=paper fine-tunes ImageNet weights (train.lr=1e-05)"),
-        (["backbone=bayesian_posenet", "preset=paper"], "or choose a pretrained backbone"),
+        (["backbone=bayesian_posenet", "preset=paper"], "or a pretrained backbone"),
         (["train.crop_scale=0.5"], "train.crop_scale must be in [1, 4]"),
         (["scoring=shared", "train.crop_scale=1.142857"], "scoring=shared needs train.crop_scale"),
     ],
