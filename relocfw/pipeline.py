@@ -78,12 +78,6 @@ def check_scoring(scoring: str, backbone: Backbone, crop_scale: float = 1.0) -> 
             f"scoring=shared needs a backbone with feature_maps and describe_pooled; "
             f"{type(backbone).__name__} lacks them (use scoring=plain)"
         )
-    if scoring == "shared" and crop_scale != 1.0:
-        # Shared scoring pools windows that span the strip's whole short side.
-        raise ConfigError(
-            f"scoring=shared needs train.crop_scale=1.0 (a window that spans the short "
-            f"side), got {crop_scale}; use scoring=plain"
-        )
     if not 1.0 <= crop_scale <= 4.0:
         raise ConfigError(f"train.crop_scale must be in [1, 4], got {crop_scale}")
 
@@ -141,6 +135,7 @@ class Relocalizer:
         self.retrieval_k = int(retrieval_k)
         check_retrieval(index, self.retrieval_k)
         self._threadpools: ThreadpoolController | None = None  # found on first query
+        self._cells: int | None = None  # see _window_cells
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
 
@@ -243,7 +238,22 @@ class Relocalizer:
         pixels = pixels.contiguous(memory_format=self.memory_format)
         maps = self.backbone.feature_maps(pixels)[0]
         height, width = strip.pixels.shape[1:]
-        return StripMaps(maps, height, width, self.backbone.input_size)
+        return StripMaps(maps, height, width, self.backbone.input_size, self._window_cells())
+
+    @torch.inference_mode()
+    def _window_cells(self) -> int | None:
+        """Cells of the trunk's maps that one input-sized window spans (crop_scale > 1).
+
+        With crop_scale 1 a window spans the strip's whole short side, so StripMaps
+        knows it; otherwise the maps of one blank input tell, measured once.
+        """
+        if self.crop_scale == 1.0:
+            return None
+        if self._cells is None:
+            side = self.backbone.input_size
+            blank = torch.zeros(1, 3, side, side, device=self.device)
+            self._cells = int(self.backbone.feature_maps(blank).shape[-1])
+        return self._cells
 
     @torch.inference_mode()
     def _shared_features(self, maps: StripMaps, corners: list[tuple[int, int]]) -> np.ndarray:

@@ -41,26 +41,42 @@ class StripMaps:
         strip_height: strip height in pixels.
         strip_width: strip width in pixels.
         input_size: the window side in pixels (the network input).
+        window_cells: how many cells a window spans along each axis. None: all cells
+            of the short axis, as when the window is the strip's whole short side
+            (crop_scale 1); with crop_scale > 1 the caller measures it (the maps of
+            one input-sized image).
     """
 
     def __init__(
-        self, maps: torch.Tensor, strip_height: int, strip_width: int, input_size: int
+        self,
+        maps: torch.Tensor,
+        strip_height: int,
+        strip_width: int,
+        input_size: int,
+        window_cells: int | None = None,
     ) -> None:
-        self.landscape = strip_width >= strip_height
-        # The short axis is the window's whole side: average it out once.
-        self.profile = maps.mean(dim=1 if self.landscape else 2)  # [C, cells]
-        cells = self.profile.shape[1]
-        self.window_cells = maps.shape[1] if self.landscape else maps.shape[2]
-        span = max(strip_width, strip_height) - input_size
+        self.maps = maps
+        cells_y, cells_x = maps.shape[1:]
+        if window_cells is None:
+            window_cells = cells_y if strip_width >= strip_height else cells_x
+        self.window_cells = window_cells
         # Offset 0 starts at cell 0 and the far edge ends at the last cell; the maps'
         # rounded sizes make a plain pixels / stride mapping overrun by a fraction.
-        self.cells_per_pixel = (cells - self.window_cells) / span if span > 0 else 0.0
+        self.cells_per_pixel = tuple(
+            (cells - window_cells) / (length - input_size) if length > input_size else 0.0
+            for cells, length in ((cells_y, strip_height), (cells_x, strip_width))
+        )
 
     def pooled(self, corners: Sequence[tuple[int, int]]) -> torch.Tensor:
         """[n, C] approximate global-average-pooled maps of the windows at `corners`."""
-        offsets = [x if self.landscape else y for y, x in corners]
-        starts = torch.tensor(offsets, dtype=self.profile.dtype, device=self.profile.device)
-        weights = coverage_weights(
-            starts * self.cells_per_pixel, self.window_cells, self.profile.shape[1]
-        )
-        return weights @ self.profile.T
+        weights = []
+        for axis in (0, 1):
+            starts = torch.tensor(
+                [corner[axis] for corner in corners], dtype=self.maps.dtype, device=self.maps.device
+            )
+            cells = self.maps.shape[1 + axis]
+            weights.append(
+                coverage_weights(starts * self.cells_per_pixel[axis], self.window_cells, cells)
+            )
+        # Separable: a window's weight on cell (i, j) is its row share times its column share.
+        return torch.einsum("ni,cij,nj->nc", weights[0], self.maps, weights[1])

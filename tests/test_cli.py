@@ -125,7 +125,6 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
         (["preset=paper"], "preset=paper fine-tunes ImageNet weights (train.lr=1e-05)"),
         (["backbone=bayesian_posenet", "preset=paper"], "or a pretrained backbone"),
         (["train.crop_scale=0.5"], "train.crop_scale must be in [1, 4]"),
-        (["scoring=shared", "train.crop_scale=1.142857"], "scoring=shared needs train.crop_scale"),
     ],
 )
 def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):

@@ -116,3 +116,42 @@ def test_unknown_scoring_and_backbones_without_the_hooks_are_refused():
 
     with pytest.raises(ConfigError, match="PlainOnly lacks them"):
         Relocalizer(PlainOnly(), KMeansIndex(k=4), CentreCrop(), scoring="shared")
+
+
+def test_a_window_inside_both_axes_pools_exactly_its_cells():
+    # crop_scale > 1: windows move along both axes. Maps of 4 x 6 cells for a
+    # 128 x 192 strip, 64-pixel windows of 2 x 2 cells: a window at a cell boundary
+    # averages exactly its four cells.
+    maps = torch.arange(3 * 4 * 6, dtype=torch.float64).reshape(3, 4, 6) ** 1.5
+    strip = StripMaps(maps, 128, 192, 64, window_cells=2)
+    pooled = strip.pooled([(32, 64), (0, 0), (64, 128)])
+    for row, (y, x) in enumerate([(1, 2), (0, 0), (2, 4)]):
+        expected = maps[:, y : y + 2, x : x + 2].mean(dim=(1, 2))
+        assert torch.allclose(pooled[row], expected)
+
+
+def test_without_window_cells_a_window_spans_the_short_side_as_before():
+    maps = torch.rand(5, 3, 7, dtype=torch.float64)
+    strip = StripMaps(maps, 96, 224, 96)
+    pooled = strip.pooled([(0, 0), (0, 128)])
+    assert torch.allclose(pooled[0], maps[:, :, :3].mean(dim=(1, 2)))
+    assert torch.allclose(pooled[1], maps[:, :, 4:7].mean(dim=(1, 2)))
+
+
+def test_shared_ga_with_a_crop_scale_answers_with_the_plain_pose_of_its_crop(scene):
+    train, test = scene
+    shared = Relocalizer(
+        tiny_posenet(),
+        KMeansIndex(k=4),
+        GeneticCropSearch(seed=0),
+        scoring="shared",
+        crop_scale=256 / 224,
+    )
+    shared.fit(train)
+    plain = Relocalizer(tiny_posenet(), KMeansIndex(k=4), CentreCrop(), crop_scale=256 / 224)
+    answer = shared.localize(test[0])
+    strip = Strip(test[0], 32, 256 / 224)
+    exact = plain._forward(strip.cut(strip.window(answer.crop))[None])
+    assert np.allclose(answer.pose.position, exact.positions[0], atol=1e-6)
+    assert np.allclose(answer.pose.quaternion, exact.quaternions[0], atol=1e-6)
+    assert shared._window_cells() == 1  # a 32-pixel input gives 1 x 1 maps
