@@ -124,7 +124,6 @@ class Method:
             batch_size,
             self.retrieval_k,
             self.scoring,
-            self.settings.crop_scale,
         )
 
 
@@ -159,7 +158,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     index = build(cfg, "index", choices["index"])
     crop = build(cfg, "crop", choices["crop"])
     check_retrieval(index, retrieval_k)
-    check_scoring(str(cfg.scoring), backbone, settings.crop_scale)
+    check_scoring(str(cfg.scoring), backbone)
     check_pretrained(cfg, choices, backbone)
     options = {
         group: {

@@ -61,11 +61,18 @@ class Backbone(torch.nn.Module, ABC):
         super().__init__()
         self.register_buffer("position_mean", torch.zeros(3))
         self.register_buffer("position_scale", torch.ones(()))
+        # The field of view of the training crops (TrainSettings.crop_scale): the
+        # pipeline shows the network the central 1/crop_scale of every query crop.
+        self.register_buffer("crop_scale", torch.ones(()))
 
     def set_position_normalisation(self, mean: np.ndarray, scale: float) -> None:
         """Fix the frame positions are regressed in; call once before training."""
         self.position_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
         self.position_scale.fill_(float(scale))
+
+    def set_crop_scale(self, crop_scale: float) -> None:
+        """Record the training crops' crop_scale; training calls it."""
+        self.crop_scale.fill_(float(crop_scale))
 
     def to_world_positions(self, normalised: torch.Tensor) -> torch.Tensor:
         """Map the network's raw position output to metres in the world frame."""

@@ -149,7 +149,6 @@ def relocalize(
             CentreCrop(),
             relocalizer.device,
             relocalizer.batch_size,
-            crop_scale=relocalizer.crop_scale,
         )
         # The map is already fitted; only the queries run again.
         results.append(evaluate(centre_label, centre, *test, quiet=quiet))

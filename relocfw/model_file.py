@@ -18,7 +18,7 @@ from relocfw.errors import DataError
 from relocfw.pipeline import Relocalizer
 from relocfw.values import Pose
 
-MODEL_FORMAT = 2  # 2: PoseNet input normalisation saved with the weights; crop_scale
+MODEL_FORMAT = 2  # 2: input normalisation and training crop_scale saved in the state
 MODEL_KIND = "relocfw-model"
 
 
@@ -55,7 +55,6 @@ def save_model(
         "kind": MODEL_KIND,
         "format": MODEL_FORMAT,
         "retrieval_k": relocalizer.retrieval_k,
-        "crop_scale": relocalizer.crop_scale,
         "metadata": metadata,
     }
     for name, part in parts.items():
@@ -104,7 +103,6 @@ def load_model(
         batch_size,
         payload["retrieval_k"],
         scoring,
-        payload.get("crop_scale", 1.0),
     )
     if "map_poses" in payload:
         relocalizer.map_poses = [Pose(row[:3], row[3:]) for row in payload["map_poses"].numpy()]

@@ -69,7 +69,7 @@ def check_retrieval(index: SimilarityIndex, retrieval_k: int) -> None:
         )
 
 
-def check_scoring(scoring: str, backbone: Backbone, crop_scale: float = 1.0) -> None:
+def check_scoring(scoring: str, backbone: Backbone) -> None:
     """Raise ConfigError unless `backbone` can score crops the way `scoring` names."""
     if scoring not in SCORINGS:
         raise ConfigError(f"scoring must be one of {', '.join(SCORINGS)}, got {scoring!r}")
@@ -78,8 +78,6 @@ def check_scoring(scoring: str, backbone: Backbone, crop_scale: float = 1.0) -> 
             f"scoring=shared needs a backbone with feature_maps and describe_pooled; "
             f"{type(backbone).__name__} lacks them (use scoring=plain)"
         )
-    if not 1.0 <= crop_scale <= 4.0:
-        raise ConfigError(f"train.crop_scale must be in [1, 4], got {crop_scale}")
 
 
 class Relocalizer:
@@ -104,9 +102,6 @@ class Relocalizer:
             (relocfw.window_pooling); the chosen crop then goes through the plain path
             once, so the pose is the plain pose of that crop. Needs a backbone with
             `feature_maps` and `describe_pooled`.
-        crop_scale: the `train.crop_scale` the backbone was trained with. The network
-            sees the central 1/crop_scale of every crop (relocfw.imaging.Strip), the
-            field of view of its training crops; 1.0 sees the whole crop.
     """
 
     def __init__(
@@ -118,11 +113,9 @@ class Relocalizer:
         batch_size: int = 64,
         retrieval_k: int = 0,
         scoring: str = "plain",
-        crop_scale: float = 1.0,
     ) -> None:
-        check_scoring(scoring, backbone, float(crop_scale))
+        check_scoring(scoring, backbone)
         self.scoring = scoring
-        self.crop_scale = float(crop_scale)
         self.device = torch.device(device)
         self.backbone = backbone.to(self.device).eval()
         self.memory_format = torch.contiguous_format
@@ -138,6 +131,13 @@ class Relocalizer:
         self._cells: int | None = None  # see _window_cells
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
+
+    @property
+    def crop_scale(self) -> float:
+        """The backbone's training crop_scale: the network sees the central
+        1/crop_scale of every crop (relocfw.imaging.Strip), the field of view of its
+        training crops; 1.0 sees the whole crop."""
+        return float(self.backbone.crop_scale)
 
     @classmethod
     def load(

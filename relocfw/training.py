@@ -31,6 +31,10 @@ from relocfw.options import integer_at_least, real_number
 from relocfw.progress import Progress
 from relocfw.values import Pose
 
+# PoseNet's training crops: 224 of a 256-pixel short side. On the validation splits of
+# benchmarks/training_crops.py it beat crops of the whole short side (README).
+POSENET_CROP_SCALE = 256 / 224
+
 
 @dataclass(frozen=True)
 class TrainSettings:
@@ -52,9 +56,11 @@ class TrainSettings:
         random_crops: train on a random square crop of each image (paper), not the centre.
         crop_scale: the image's short side is scaled to crop_scale x the network input
             before a random input-sized crop is cut. 1.0: the crop is the whole short
-            side and moves along the long axis only, as at query time. 256/224
-            (1.142857): PoseNet's scheme (224 crops of the image at a 256-pixel short
-            side), so crops also move along the short axis and see 87.5% of it.
+            side and moves along the long axis only. 256/224 (1.142857, the default):
+            PoseNet's scheme (224 crops of the image at a 256-pixel short side), so
+            crops also move along the short axis and see 87.5% of it. Training records
+            it in the backbone, and queries then show the network the central
+            1/crop_scale of each crop, as PoseNet tests on the centre 224 crop.
         checkpoint_every: steps between resumable checkpoints.
         seed: initialisation and batch order.
     """
@@ -71,7 +77,7 @@ class TrainSettings:
     learned_init: tuple[float, float] = (0.0, -3.0)
     auxiliary_weights: tuple[float, float] = (0.3, 0.3)
     random_crops: bool = True
-    crop_scale: float = 1.0
+    crop_scale: float = POSENET_CROP_SCALE
     checkpoint_every: int = 500
     seed: int = 0
 
@@ -126,7 +132,7 @@ class TrainingImages:
         images: Sequence[np.ndarray],
         poses: Sequence[Pose],
         input_size: int,
-        crop_scale: float = 1.0,
+        crop_scale: float = POSENET_CROP_SCALE,
     ):
         if len(images) == 0:
             raise DataError("the training split is empty")
@@ -216,6 +222,12 @@ def train_backbone(
     processes as the interrupted run had.
     """
     settings.validate()
+    if abs(data.crop_scale - settings.crop_scale) > 1e-6:
+        raise ConfigError(
+            f"the training images were cut with crop_scale={data.crop_scale:.6g} but "
+            f"train.crop_scale={settings.crop_scale:.6g}; build TrainingImages with the "
+            "settings' crop_scale"
+        )
     if world is not None:
         world.check_batch(settings.batch_size)
         quiet = quiet or not world.is_main
@@ -229,6 +241,7 @@ def train_backbone(
     backbone.set_position_normalisation(
         positions.mean(axis=0), float(max(positions.std(axis=0).mean(), 1e-3))
     )
+    backbone.set_crop_scale(data.crop_scale)
     # Channels-last trains GoogLeNet about 1.6x faster on CPU (benchmarks/).
     memory_format = torch.channels_last if backbone.channels_last else torch.contiguous_format
     backbone.to(device=device, memory_format=memory_format)

@@ -102,7 +102,8 @@ def test_mc_sampling_model_round_trip_gives_the_same_poses_and_spreads(scene, tm
 def test_a_model_trained_on_posenet_crops_is_loaded_with_its_crop_scale(scene, tmp_path):
     _, train_images, test_images = scene
     backbone, options = tiny_backbone()
-    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), crop_scale=256 / 224)
+    backbone.set_crop_scale(256 / 224)  # as training with train.crop_scale=1.142857 does
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop())
     relocalizer.fit(train_images)
     expected = answers(relocalizer, test_images)
     loaded = round_trip(relocalizer, {"backbone": options}, tmp_path)

@@ -140,15 +140,14 @@ def test_without_window_cells_a_window_spans_the_short_side_as_before():
 
 def test_shared_ga_with_a_crop_scale_answers_with_the_plain_pose_of_its_crop(scene):
     train, test = scene
+    backbones = [tiny_posenet(), tiny_posenet()]
+    for backbone in backbones:
+        backbone.set_crop_scale(256 / 224)  # as training with train.crop_scale does
     shared = Relocalizer(
-        tiny_posenet(),
-        KMeansIndex(k=4),
-        GeneticCropSearch(seed=0),
-        scoring="shared",
-        crop_scale=256 / 224,
+        backbones[0], KMeansIndex(k=4), GeneticCropSearch(seed=0), scoring="shared"
     )
     shared.fit(train)
-    plain = Relocalizer(tiny_posenet(), KMeansIndex(k=4), CentreCrop(), crop_scale=256 / 224)
+    plain = Relocalizer(backbones[1], KMeansIndex(k=4), CentreCrop())
     answer = shared.localize(test[0])
     strip = Strip(test[0], 32, 256 / 224)
     exact = plain._forward(strip.cut(strip.window(answer.crop))[None])

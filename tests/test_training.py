@@ -8,6 +8,9 @@ from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.errors import ConfigError, DataError
 from relocfw.loss import FixedWeighting, LearnedWeighting, head_errors, posenet_loss
+from relocfw.pipeline import Relocalizer
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.posenet import PoseNet
 from relocfw.training import TrainingImages, TrainSettings, train_backbone
 from relocfw.values import PoseOutput
@@ -278,3 +281,23 @@ def test_a_killed_writers_temporary_is_cleaned_up(data, tmp_path):
     stale.write_bytes(b"half a checkpoint")
     train_backbone(tiny_model(), data, SETTINGS, checkpoint, key="k", quiet=True)
     assert not stale.exists() and load_checkpoint(checkpoint)["complete"]
+
+
+def test_training_records_its_crop_scale_in_the_backbone(scene):
+    # The pipeline reads it from the backbone, so a saved model always shows the
+    # network the field of view it was trained on.
+    torch.manual_seed(0)
+    backbone = PoseNet(input_size=32, width=0.0625, feature_dim=16)
+    data = TrainingImages(*scene, input_size=32, crop_scale=256 / 224)
+    train_backbone(backbone, data, TrainSettings(iterations=1, batch_size=2, crop_scale=256 / 224))
+    assert float(backbone.crop_scale) == pytest.approx(256 / 224)
+    assert "crop_scale" in backbone.state_dict()
+    assert Relocalizer(backbone, ExhaustiveIndex(), CentreCrop()).crop_scale == pytest.approx(
+        256 / 224
+    )
+
+
+def test_training_refuses_images_cut_with_another_crop_scale(scene):
+    data = TrainingImages(*scene, input_size=32, crop_scale=1.0)
+    with pytest.raises(ConfigError, match="cut with crop_scale=1 but train.crop_scale=1.14286"):
+        train_backbone(PoseNet(input_size=32, width=0.0625, feature_dim=16), data, TrainSettings())
