@@ -13,14 +13,19 @@ training data (never the test split):
   ../shared/data/7scenes-redkitchen).
 
 `--split test` runs the usual train/test splits instead, to report the chosen default.
-Prints a table, writes JSON.
+Test time matches training: a crop_scale model sees the central 1/crop_scale of each
+query crop, as PoseNet tests on the centre 224 of the 256-pixel image. Prints each
+scheme's medians (mean +- std over seeds) and a paired per-query test between the
+schemes (Wilcoxon signed-rank, bootstrap 95% interval of the difference of medians);
+writes JSON.
 
-    .venv/bin/python benchmarks/training_crops.py --seeds 0 1
+    .venv/bin/python benchmarks/training_crops.py --seeds 0 1 2
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import subprocess
@@ -30,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 from common import write_json  # benchmarks/, the script's own folder
+from scipy.stats import wilcoxon
 
 from relocfw.data.synthetic import SyntheticSceneSpec, ensure_synthetic_scene
 
@@ -55,7 +61,7 @@ def dataset_overrides(name: str, split: str, cache_dir: Path) -> list[str]:
     return overrides
 
 
-def run(overrides: list[str], out: Path) -> dict:
+def run(overrides: list[str], out: Path) -> tuple[dict, dict[str, list[float]]]:
     command = [
         sys.executable,
         "-m",
@@ -70,7 +76,46 @@ def run(overrides: list[str], out: Path) -> dict:
     print("$", " ".join(command), flush=True)
     subprocess.run(command, check=True, env=os.environ.copy())
     rows = json.loads((out / "summary.json").read_text())
-    return rows[-1]
+    with open(out / "results.csv") as stream:
+        answers = [r for r in csv.DictReader(stream) if r["method"] == rows[-1]["method"]]
+    errors = {
+        "frames": [r["frame"] for r in answers],
+        "position_m": [float(r["position_error_m"]) for r in answers],
+        "orientation_deg": [float(r["orientation_error_deg"]) for r in answers],
+    }
+    return rows[-1], errors
+
+
+def paired(first: list[dict], second: list[dict], key: str, rng: np.random.Generator) -> dict:
+    """Paired comparison of per-query errors (same seed, same query) of two schemes.
+
+    Wilcoxon signed-rank test on the differences, and a bootstrap 95% interval of the
+    difference of medians (second - first), resampling queries within each seed.
+    """
+    a = np.concatenate([r["errors"][key] for r in first])
+    b = np.concatenate([r["errors"][key] for r in second])
+    test = wilcoxon(b, a)
+    for x, y in zip(first, second, strict=True):
+        if x["seed"] != y["seed"] or x["errors"]["frames"] != y["errors"]["frames"]:
+            raise SystemExit(f"error: runs do not pair up (seed {x['seed']} / {y['seed']})")
+    groups = [
+        (np.array(x["errors"][key]), np.array(y["errors"][key]))
+        for x, y in zip(first, second, strict=True)
+    ]
+    boots = []
+    for _ in range(2000):
+        picks = [rng.integers(0, len(x), len(x)) for x, _ in groups]
+        xa = np.concatenate([x[p] for (x, _), p in zip(groups, picks, strict=True)])
+        xb = np.concatenate([y[p] for (_, y), p in zip(groups, picks, strict=True)])
+        boots.append(np.median(xb) - np.median(xa))
+    low, high = np.percentile(boots, [2.5, 97.5])
+    return {
+        "pairs": int(len(a)),
+        "median_difference": float(np.median(b) - np.median(a)),
+        "bootstrap_95": [float(low), float(high)],
+        "wilcoxon_p": float(test.pvalue),
+        "second_better_share": float(np.mean(b < a)),
+    }
 
 
 def main() -> None:
@@ -92,8 +137,16 @@ def main() -> None:
                     overrides = dataset_overrides(dataset, args.split, cache_dir)
                     overrides += [f"train.crop_scale={scale:.6f}", f"seed={seed}"]
                     run_dir = Path(scratch) / f"{dataset}-{scale:.3f}-{seed}"
-                    summary = run(overrides, run_dir)
-                    runs.append({"dataset": dataset, "scheme": label, "seed": seed, **summary})
+                    summary, errors = run(overrides, run_dir)
+                    runs.append(
+                        {
+                            "dataset": dataset,
+                            "scheme": label,
+                            "seed": seed,
+                            **summary,
+                            "errors": errors,
+                        }
+                    )
     print(f"\n{args.split} split, centre crop, demo preset; mean +- std over seeds {args.seeds}")
     print(f"{'dataset':<12} {'scheme':<20} {'med pos (m)':>16} {'med ori (deg)':>16}")
     table = []
@@ -119,7 +172,31 @@ def main() -> None:
                 f"{row['median_orientation_deg_mean']:>8.2f} +- "
                 f"{row['median_orientation_deg_std']:.2f}"
             )
-    write_json({"split": args.split, "seeds": args.seeds, "table": table, "runs": runs}, out)
+    rng = np.random.default_rng(0)
+    tests = {}
+    first, second = SCALES
+    print(f"\npaired per-query test, {second} - {first} (same seed, same query)")
+    for dataset in args.datasets:
+        mine = {
+            label: sorted(
+                (r for r in runs if r["dataset"] == dataset and r["scheme"] == label),
+                key=lambda r: r["seed"],
+            )
+            for label in SCALES
+        }
+        tests[dataset] = {
+            key: paired(mine[first], mine[second], key, rng)
+            for key in ("position_m", "orientation_deg")
+        }
+        for key, result in tests[dataset].items():
+            low, high = result["bootstrap_95"]
+            print(
+                f"{dataset:<12} {key:<16} median difference {result['median_difference']:+.3f} "
+                f"[{low:+.3f}, {high:+.3f}], Wilcoxon p = {result['wilcoxon_p']:.2g}, "
+                f"{second} better on {result['second_better_share']:.0%} of pairs"
+            )
+    report = {"split": args.split, "seeds": args.seeds, "table": table, "paired": tests}
+    write_json({**report, "runs": runs}, out)
 
 
 if __name__ == "__main__":
