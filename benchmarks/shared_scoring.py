@@ -33,6 +33,7 @@ from relocfw import Relocalizer
 from relocfw.data.frames import read_images
 from relocfw.geometry import orientation_error_deg, position_error
 from relocfw.imaging import Strip
+from relocfw.interfaces import crop_at, crop_side_and_span
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.sweep_crop import SweepCrop
 from relocfw.values import Pose
@@ -47,11 +48,15 @@ def test_frames(relocalizer: Relocalizer, cache_dir: Path) -> list:
 
 
 def descriptor_agreement(plain: Relocalizer, shared: Relocalizer, image: np.ndarray) -> dict:
-    """Shared vs plain descriptors of every distinct sweep window of one image."""
-    strip = Strip(image, plain.backbone.input_size)
-    span = max(strip.pixels.shape[1:]) - plain.backbone.input_size
-    landscape = strip.pixels.shape[2] >= strip.pixels.shape[1]
-    corners = [(0, o) if landscape else (o, 0) for o in range(span + 1)]
+    """Shared vs plain descriptors of every distinct sweep window of one image.
+
+    The strip and its windows are the pipeline's own (the model's crop_scale
+    included), one window per distinct crop offset.
+    """
+    strip = Strip(image, plain.backbone.input_size, plain.crop_scale)
+    _, span = crop_side_and_span(strip.width, strip.height)
+    windows = (strip.window(crop_at(o, strip.width, strip.height)) for o in range(span + 1))
+    corners = list(dict.fromkeys(windows))
     exact = plain._forward(torch.stack([strip.cut(c) for c in corners])).features
     approximate = shared._shared_features(shared._strip_maps(strip), corners)
     relative = np.linalg.norm(approximate - exact, axis=1) / np.linalg.norm(exact, axis=1)
