@@ -14,9 +14,11 @@ from omegaconf.errors import OmegaConfBaseException
 
 from relocfw import jobs
 from relocfw.cli_methods import build, build_method, prepare_model
-from relocfw.compare_job import MapView, write_comparison
+from relocfw.compare_job import MapView, write_comparison, write_seed_comparison
+from relocfw.data.frames import mean_pose
 from relocfw.errors import ConfigError
-from relocfw.evaluation import MethodResult, evaluate
+from relocfw.evaluation import MethodResult, constant_answer, evaluate
+from relocfw.options import integer_at_least
 from relocfw.pipeline import Relocalizer
 
 
@@ -39,8 +41,23 @@ def row_label(name: str, overrides: list[str], method_cfg: DictConfig) -> str:
     return f"{name} (x{samples} MC dropout)" if samples and not asked else name
 
 
+def training_seeds(cfg: DictConfig) -> list[int]:
+    """compare.seeds, or the run's own seed when unset."""
+    if cfg.compare.get("seeds") is None:
+        return [int(cfg.seed)]
+    seeds = list(cfg.compare.seeds)
+    if not seeds or len(set(seeds)) != len(seeds):
+        raise ConfigError(f"compare.seeds must be distinct integers, got {seeds}")
+    return [integer_at_least("compare.seeds", s, 0) for s in seeds]
+
+
 def run_compare(cfg: DictConfig, device: torch.device) -> None:
-    """Every method of compare.methods on every scene; each model trained once."""
+    """Every method of compare.methods on every scene, for every training seed.
+
+    Each (seed, scene, method) model is trained once (or found in the cache); with
+    several seeds, each seed's full comparison goes to seed_<n>/ and the top-level
+    comparison files hold the spread over seeds and the paired tests.
+    """
     methods = OmegaConf.to_container(cfg.compare.methods, resolve=True)
     if not methods:
         raise ConfigError("compare.methods is empty")
@@ -48,6 +65,7 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
     reference = str(cfg.compare.reference)
     if reference not in methods:
         raise ConfigError(f"compare.reference={reference!r} is not in compare.methods")
+    seeds = training_seeds(cfg)
     base = [
         o
         for o in HydraConfig.get().overrides.task
@@ -57,47 +75,61 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
     crop_seeds = [int(s) for s in cfg.compare.crop_seeds or []]
     # Compose and build every method first: a typo fails before hours of training.
     plans, rows = {}, {}
+    for seed in seeds:
+        for scene in scenes:
+            scene_override = [f"dataset.scene={scene}"] if scene is not None else []
+            for name, overrides in methods.items():
+                composed = base + scene_override + list(overrides) + [f"seed={seed}"]
+                method_cfg, choices = compose_method(composed, name)
+                plans[seed, scene, name] = (method_cfg, choices)
+                rows[name] = row_label(name, list(overrides), method_cfg)
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    results = {seed: {} for seed in seeds}
+    seed_runs = {seed: {} for seed in seeds}
+    maps = {seed: {} for seed in seeds}
+    training, floors = {}, {}
     for scene in scenes:
-        scene_override = [f"dataset.scene={scene}"] if scene is not None else []
-        for name, overrides in methods.items():
-            method_cfg, choices = compose_method(base + scene_override + list(overrides), name)
-            plans[scene, name] = (method_cfg, choices)
-            rows[name] = row_label(name, list(overrides), method_cfg)
-    results, training, maps, seed_runs = {}, {}, {}, {}
-    for scene in scenes:
-        first_cfg, first_choices = plans[scene, next(iter(methods))]
+        first_cfg, first_choices = plans[seeds[0], scene, next(iter(methods))]
         dataset = build(first_cfg, "dataset", first_choices["dataset"])
         label = scene or first_choices["dataset"]
         train = jobs.load_split(dataset, "train", quiet)
         test = jobs.load_split(dataset, "test", quiet)
-        jobs.write_skipped(dataset, Path(HydraConfig.get().runtime.output_dir))
-        results[label], training[label], maps[label] = {}, train[0], None
-        seed_runs[label] = {}
-        for name in methods:
-            method_cfg, choices = plans[scene, name]
-            method = build_method(method_cfg, choices, label=rows[name])
-            method.index.check_map_size(len(train[0]))
-            prepare_model(method_cfg, method, train, device)
-            relocalizer = method.relocalizer(device, int(cfg.query_batch_size))
-            result, features = jobs.run_method(rows[name], relocalizer, train, test, quiet)
-            results[label][rows[name]] = result
-            if "seed" in method_cfg.crop and len(crop_seeds) > 1:
-                seed_runs[label][rows[name]] = rerun_crop_seeds(
-                    method_cfg, choices, relocalizer, result, test, crop_seeds, quiet
-                )
-            if maps[label] is None and hasattr(method.index, "centres"):
-                standardised = method.index.zscore(features)
-                labels = method.index.assign(features)
-                maps[label] = MapView(standardised, method.index.centres, labels)
-    write_comparison(
-        results,
-        training,
-        maps,
-        rows[reference],
-        Path(HydraConfig.get().runtime.output_dir),
-        seed=int(cfg.seed),
-        seed_runs=seed_runs,
-    )
+        jobs.write_skipped(dataset, run_dir)
+        training[label] = train[0]
+        floors[label] = constant_answer("mean training pose", mean_pose(train[0]), test[0])
+        for seed in seeds:
+            if len(seeds) > 1:
+                print(f"\n== {label}: training seed {seed} ==")
+            results[seed][label], seed_runs[seed][label] = {}, {}
+            maps[seed][label] = None
+            for name in methods:
+                method_cfg, choices = plans[seed, scene, name]
+                method = build_method(method_cfg, choices, label=rows[name])
+                method.index.check_map_size(len(train[0]))
+                prepare_model(method_cfg, method, train, device)
+                relocalizer = method.relocalizer(device, int(cfg.query_batch_size))
+                result, features = jobs.run_method(rows[name], relocalizer, train, test, quiet)
+                results[seed][label][rows[name]] = result
+                if "seed" in method_cfg.crop and len(crop_seeds) > 1:
+                    seed_runs[seed][label][rows[name]] = rerun_crop_seeds(
+                        method_cfg, choices, relocalizer, result, test, crop_seeds, quiet
+                    )
+                if maps[seed][label] is None and hasattr(method.index, "centres"):
+                    standardised = method.index.zscore(features)
+                    labels = method.index.assign(features)
+                    maps[seed][label] = MapView(standardised, method.index.centres, labels)
+    for seed in seeds:
+        write_comparison(
+            results[seed],
+            training,
+            maps[seed],
+            rows[reference],
+            run_dir / f"seed_{seed}" if len(seeds) > 1 else run_dir,
+            seed=seed,
+            seed_runs=seed_runs[seed],
+        )
+    if len(seeds) > 1:
+        write_seed_comparison(results, floors, rows[reference], run_dir, bootstrap_seed=seeds[0])
 
 
 def rerun_crop_seeds(

@@ -24,6 +24,7 @@ from relocfw.comparison import (
 from relocfw.data.frames import Frame, mean_pose
 from relocfw.evaluation import MethodResult, constant_answer
 from relocfw.jobs import write_results
+from relocfw.seed_comparison import SeedResults, seed_comparison, seed_markdown
 
 
 @dataclass(frozen=True)
@@ -131,3 +132,25 @@ def write_comparison(
     write_text_atomic(json.dumps(summary, indent=2) + "\n", run_dir / "comparison.json")
     print(f"\ncomparison: {run_dir / 'comparison.md'}; figures: {len(written)} PNG in {run_dir}")
     return summary
+
+
+def write_seed_comparison(
+    results: SeedResults,
+    floors: Mapping[str, MethodResult],
+    reference: str,
+    run_dir: Path,
+    bootstrap_seed: int = 0,
+) -> dict[str, Any]:
+    """comparison.md / .json at the top of the run: the spread over training seeds
+    and each method's paired test against `reference` (printed too)."""
+    run_dir = Path(run_dir)
+    seeds = sorted(results)
+    table = seed_comparison(results, floors, reference, bootstrap_seed)
+    markdown = seed_markdown(table, reference, seeds)
+    write_text_atomic(markdown, run_dir / "comparison.md")
+    report = {"reference": reference, "seeds": seeds, "scenes": table}
+    write_text_atomic(json.dumps(report, indent=2) + "\n", run_dir / "comparison.json")
+    print(f"\nOver training seeds {seeds} (each seed's tables and figures: seed_<n>/)\n")
+    print(markdown)
+    print(f"comparison over seeds: {run_dir / 'comparison.md'}")
+    return report

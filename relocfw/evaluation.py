@@ -11,33 +11,36 @@ import numpy as np
 
 from relocfw.data.frames import Frame
 from relocfw.geometry import orientation_error_deg, position_error
+from relocfw.metrics import accuracy_metrics, failed_as_infinite
 from relocfw.pipeline import Relocalizer
 from relocfw.progress import Progress
 from relocfw.values import Crop, Localization, Pose
 
-POSITION_THRESHOLD_M = 0.5
-ORIENTATION_THRESHOLD_DEG = 15.0
-
 
 @dataclass(frozen=True)
 class MethodResult:
-    """One method's answers on a split, aligned with its frames."""
+    """One method's answers on a split, aligned with its frames.
+
+    Errors of a query answered without a finite pose are +inf (relocfw.metrics).
+    """
 
     method: str
     frames: tuple[Frame, ...]
     answers: tuple[Localization, ...]
 
     def position_errors(self) -> np.ndarray:
-        return position_error(
+        errors = position_error(
             np.stack([a.pose.position for a in self.answers]),
             np.stack([f.pose.position for f in self.frames]),
         )
+        return failed_as_infinite(errors)
 
     def orientation_errors(self) -> np.ndarray:
-        return orientation_error_deg(
+        errors = orientation_error_deg(
             np.stack([a.pose.quaternion for a in self.answers]),
             np.stack([f.pose.quaternion for f in self.frames]),
         )
+        return failed_as_infinite(errors)
 
 
 def evaluate(
@@ -72,22 +75,17 @@ def constant_answer(method: str, pose: Pose, frames: Sequence[Frame]) -> MethodR
 
 
 def summarise(result: MethodResult) -> dict[str, float | int | str]:
-    """Median and mean errors, the share within 0.5 m and 15 deg, time per query.
+    """The field's accuracy metrics (relocfw.metrics.accuracy_metrics) and costs.
 
     Time is reported as the median (robust to a slow moment of the machine) and the
-    mean over the queries of the timed (warmed-up) run.
+    mean over the queries of the timed (warmed-up) run. A failed query counts as
+    infinitely wrong.
     """
     positions = result.position_errors()
-    orientations = result.orientation_errors()
-    within = (positions < POSITION_THRESHOLD_M) & (orientations < ORIENTATION_THRESHOLD_DEG)
     return {
         "method": result.method,
         "queries": len(positions),
-        "median_position_m": float(np.median(positions)),
-        "mean_position_m": float(np.mean(positions)),
-        "median_orientation_deg": float(np.median(orientations)),
-        "mean_orientation_deg": float(np.mean(orientations)),
-        "share_within_0.5m_15deg": float(np.mean(within)),
+        **accuracy_metrics(positions, result.orientation_errors()),
         "median_seconds_per_query": float(np.median([a.seconds for a in result.answers])),
         "mean_seconds_per_query": float(np.mean([a.seconds for a in result.answers])),
         "mean_network_passes": float(np.mean([a.network_passes for a in result.answers])),

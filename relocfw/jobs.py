@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import csv
+import io
 import json
 from collections.abc import Sequence
 from pathlib import Path
@@ -114,12 +116,23 @@ def run_method(
     return evaluate(method, relocalizer, *test, quiet=quiet), features
 
 
+def summary_csv(summaries: Sequence[dict[str, Any]]) -> str:
+    """One row per method, one column per summary key (metrics, shares and costs)."""
+    stream = io.StringIO()
+    writer = csv.DictWriter(stream, fieldnames=list(summaries[0]))
+    writer.writeheader()
+    writer.writerows(summaries)
+    return stream.getvalue()
+
+
 def write_results(results: Sequence[MethodResult], run_dir: Path, name: str = "") -> str:
-    """results{name}.csv, summary{name}.json and table{name}.txt; returns the table."""
+    """results{name}.csv (per query), summary{name}.json and .csv (per method) and
+    table{name}.txt; returns the table."""
     summaries = [summarise(r) for r in results]
     run_dir = Path(run_dir)
     write_text_atomic(per_image_csv(results), run_dir / f"results{name}.csv")
     write_text_atomic(json.dumps(summaries, indent=2) + "\n", run_dir / f"summary{name}.json")
+    write_text_atomic(summary_csv(summaries), run_dir / f"summary{name}.csv")
     table = format_table(summaries)
     write_text_atomic(table + "\n", run_dir / f"table{name}.txt")
     return table

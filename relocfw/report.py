@@ -5,12 +5,20 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+from relocfw.metrics import RECALL_BANDS, band_key, band_title
+
 COLUMNS = (
     ("median_position_m", "med pos (m)", "{:.3f}"),
     ("mean_position_m", "mean pos (m)", "{:.3f}"),
     ("median_orientation_deg", "med ori (deg)", "{:.2f}"),
     ("mean_orientation_deg", "mean ori (deg)", "{:.2f}"),
+    *((band_key(m, d), band_title(m, d), "{:.1%}") for m, d in RECALL_BANDS),
+    ("share_position_below_0.5m", "<0.5m", "{:.1%}"),
+    ("share_orientation_below_15deg", "<15deg", "{:.1%}"),
+    ("share_position_above_1m", ">1m", "{:.1%}"),
+    ("share_orientation_above_20deg", ">20deg", "{:.1%}"),
     ("share_within_0.5m_15deg", "<0.5m & <15deg", "{:.1%}"),
+    ("failed_queries", "failed", "{:d}"),
     ("median_seconds_per_query", "med ms/query", "{:.1f}"),
     ("mean_seconds_per_query", "mean ms/query", "{:.1f}"),
     ("mean_crops_scored", "crops/query", "{:.1f}"),
@@ -19,7 +27,8 @@ COLUMNS = (
 
 
 def format_table(summaries: Sequence[dict[str, Any]]) -> str:
-    """Plain-text table, one row per method; medians and means over all queries."""
+    """Plain-text table, one row per method; medians, means and shares over all queries
+    (a failed query counts as infinitely wrong)."""
     header = ["method", *(title for _, title, _ in COLUMNS)]
     rows = []
     for summary in summaries:
