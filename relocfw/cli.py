@@ -1,5 +1,5 @@
-"""`relocfw`: the Hydra command line. With cli_methods and cli_compare, the only
-modules that see a DictConfig."""
+"""`relocfw`: the Hydra command line. With cli_methods, cli_compare and cli_diagnose,
+the only modules that see a DictConfig."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from omegaconf import DictConfig
 
 from relocfw import __version__, jobs
 from relocfw.cli_compare import run_compare
+from relocfw.cli_diagnose import run_diagnose
 from relocfw.cli_methods import (
     build,
     build_method,
@@ -32,7 +33,7 @@ from relocfw.pipeline import Relocalizer
 from relocfw.plugin_discovery import conflicts, discover_options
 from relocfw.torchrun import join_torchrun, leave_torchrun
 
-TASKS = ("relocalize", "train", "compare", "localize", "plugins")
+TASKS = ("relocalize", "train", "compare", "localize", "plugins", "diagnose")
 
 
 def check_common(cfg: DictConfig) -> torch.device:
@@ -70,6 +71,9 @@ def run_task(cfg: DictConfig, device: torch.device, world: World | None) -> None
         return
     if cfg.task == "localize":
         run_localize(cfg, device)
+        return
+    if cfg.task == "diagnose":
+        run_diagnose(cfg, device)
         return
     if cfg.task == "plugins":
         print(options_help())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 from typing import NamedTuple
@@ -15,7 +16,14 @@ from threadpoolctl import ThreadpoolController
 from relocfw.errors import ConfigError, DataError
 from relocfw.geometry import mean_quaternion
 from relocfw.imaging import Strip, image_fingerprint, to_network_input
-from relocfw.interfaces import Backbone, CropDistance, CropSearch, SimilarityIndex
+from relocfw.interfaces import (
+    Backbone,
+    CropDistance,
+    CropSearch,
+    SimilarityIndex,
+    crop_at,
+    crop_side_and_span,
+)
 from relocfw.progress import Progress
 from relocfw.values import Crop, Localization, Pose
 from relocfw.window_pooling import StripMaps
@@ -31,6 +39,36 @@ class NetworkAnswers(NamedTuple):
     features: np.ndarray  # [n, D]
     position_spread: np.ndarray  # [n], NaN unless the backbone samples
     orientation_spread_deg: np.ndarray  # [n]
+
+
+@dataclass(frozen=True)
+class WindowScores:
+    """Every crop offset of one query: its window, map distance and pose.
+
+    What `Relocalizer.score_windows` returns: entry i is offset i along the long axis
+    (crop=sweep at stride 1 tries exactly these), so a study of the crop premise sees
+    the very windows, distances and poses the pipeline would produce.
+    """
+
+    crops: tuple[Crop, ...]  # [n] in original image pixels, as Localization.crop
+    corners: np.ndarray  # [n, 2] int (y, x) of each offset's window in the strip
+    distances: np.ndarray  # [n] map distance of each window's descriptor
+    positions: np.ndarray  # [n, 3] the pose answered were that crop chosen
+    quaternions: np.ndarray  # [n, 4]
+    centre: int  # the entry of the centre crop (crop=centre, and the map's descriptors)
+    windows: int  # distinct windows, i.e. network inputs run: offsets may share one
+    scale: float  # strip pixels per original image pixel
+    input_size: int  # the window's side in strip pixels
+
+    def views(self) -> np.ndarray:
+        """[n, 3] (x, y, side) in original pixels of what the network sees of each crop.
+
+        The whole crop when crop_scale is 1; its central 1/crop_scale otherwise.
+        """
+        side = np.full(len(self.crops), self.input_size / self.scale)
+        return np.column_stack(
+            [self.corners[:, 1] / self.scale, self.corners[:, 0] / self.scale, side]
+        )
 
 
 class QueryDistance:
@@ -231,6 +269,23 @@ class Relocalizer:
         quaternion = mean_quaternion(np.stack([p.quaternion for p in poses]), weights)
         return Pose(position, quaternion)
 
+    def _score_corners(
+        self, strip: Strip, corners: Sequence[tuple[int, int]]
+    ) -> tuple[np.ndarray, NetworkAnswers]:
+        """Map distances and network answers of strip windows (scoring=plain).
+
+        The one place a window becomes a distance: `localize` and `score_windows`
+        share it, so the diagnostic measures what the search sees.
+        """
+        answers = self._forward(torch.stack([strip.cut(c) for c in corners]))
+        return self._map_distance(answers.features), answers
+
+    def _answer_pose(self, answer: NetworkAnswers) -> Pose:
+        """The pose answered for one window: the network's, or retrieval's."""
+        if self.retrieval_k > 0:
+            return self._retrieved_pose(answer.features)
+        return Pose(answer.positions, answer.quaternions)
+
     @torch.inference_mode()
     def _strip_maps(self, strip: Strip) -> StripMaps:
         """The trunk's maps of the whole strip: one pass for every candidate window."""
@@ -273,8 +328,7 @@ class Relocalizer:
             new = list(dict.fromkeys(c for c in corners if c not in results))
             if not new:
                 return
-            answers = self._forward(torch.stack([strip.cut(c) for c in new]))
-            distances = self._map_distance(answers.features)
+            distances, answers = self._score_corners(strip, new)
             for i, corner in enumerate(new):
                 results[corner] = (
                     float(distances[i]),
@@ -304,10 +358,7 @@ class Relocalizer:
         corner = strip.window(chosen)
         evaluate([corner])
         best_distance, answer = results[corner]
-        if self.retrieval_k > 0:
-            pose = self._retrieved_pose(answer.features)
-        else:
-            pose = Pose(answer.positions, answer.quaternions)
+        pose = self._answer_pose(answer)
         # Cost in whole-network passes: each plain window is one; the strip pass costs
         # its area over a window's (the trunk dominates the network's work).
         side = self.backbone.input_size
@@ -321,4 +372,46 @@ class Relocalizer:
             position_spread=float(answer.position_spread),
             orientation_spread_deg=float(answer.orientation_spread_deg),
             network_passes=len(results) + (0.0 if strip_maps is None else strip_passes),
+        )
+
+    @torch.inference_mode()
+    def score_windows(self, image: np.ndarray) -> WindowScores:
+        """Every crop offset of one RGB image with its map distance and pose.
+
+        For studying the paper's premise (relocfw.diagnosis): the offsets are those
+        crop=sweep tries at stride 1, cut as `localize` cuts them (crop_scale
+        included), scored by the plain network whatever `scoring` says, and each pose
+        is what `localize` answers were that crop chosen (retrieval included). Offsets
+        that round to the same window share one network pass; windows go through the
+        network `batch_size` at a time, so memory stays flat however long the image.
+        """
+        strip = Strip(image, self.backbone.input_size, self.crop_scale)
+        _, span = crop_side_and_span(strip.width, strip.height)
+        crops = tuple(crop_at(offset, strip.width, strip.height) for offset in range(span + 1))
+        corners = [strip.window(c) for c in crops]
+        distinct = list(dict.fromkeys(corners))
+        distances, positions, quaternions = [], [], []
+        for start in range(0, len(distinct), self.batch_size):
+            chunk_distances, answers = self._score_corners(
+                strip, distinct[start : start + self.batch_size]
+            )
+            poses = [
+                self._answer_pose(NetworkAnswers(*(column[i] for column in answers)))
+                for i in range(len(chunk_distances))
+            ]
+            distances.append(np.asarray(chunk_distances, dtype=np.float64))
+            positions += [p.position for p in poses]
+            quaternions += [p.quaternion for p in poses]
+        where = {corner: i for i, corner in enumerate(distinct)}
+        index = np.array([where[c] for c in corners])
+        return WindowScores(
+            crops=crops,
+            corners=np.array(corners, dtype=np.int64).reshape(-1, 2),
+            distances=np.concatenate(distances)[index],
+            positions=np.stack(positions)[index],
+            quaternions=np.stack(quaternions)[index],
+            centre=crops.index(strip.centre_crop()),
+            windows=len(distinct),
+            scale=float(strip.scale),
+            input_size=int(strip.input_size),
         )
