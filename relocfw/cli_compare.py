@@ -45,6 +45,8 @@ def training_seeds(cfg: DictConfig) -> list[int]:
     """compare.seeds, or the run's own seed when unset."""
     if cfg.compare.get("seeds") is None:
         return [int(cfg.seed)]
+    if not OmegaConf.is_list(cfg.compare.seeds):
+        raise ConfigError(f"compare.seeds must be a list such as [0,1,2], got {cfg.compare.seeds}")
     seeds = list(cfg.compare.seeds)
     if not seeds or len(set(seeds)) != len(seeds):
         raise ConfigError(f"compare.seeds must be distinct integers, got {seeds}")
@@ -81,6 +83,13 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
             for name, overrides in methods.items():
                 composed = base + scene_override + list(overrides) + [f"seed={seed}"]
                 method_cfg, choices = compose_method(composed, name)
+                if len(seeds) > 1 and int(method_cfg.train.seed) != seed:
+                    # train.seed=N on the command line would pin every "seed" to one
+                    # model: a spread of zero and a meaningless test.
+                    raise ConfigError(
+                        f"compare.seeds: train.seed is pinned to {method_cfg.train.seed}; "
+                        "drop train.seed= so each training seed trains its own model"
+                    )
                 plans[seed, scene, name] = (method_cfg, choices)
                 rows[name] = row_label(name, list(overrides), method_cfg)
     run_dir = Path(HydraConfig.get().runtime.output_dir)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +23,7 @@ from relocfw.comparison import (
 from relocfw.data.frames import Frame, mean_pose
 from relocfw.evaluation import MethodResult, constant_answer
 from relocfw.jobs import write_results
+from relocfw.json_output import strict_json
 from relocfw.seed_comparison import SeedResults, seed_comparison, seed_markdown
 
 
@@ -129,7 +129,7 @@ def write_comparison(
         for scene, by_method in spreads.items():
             summary["scenes"].setdefault(scene, {})["crop_seed_spread"] = by_method
     summary["figures"] = [str(p) for p in written]
-    write_text_atomic(json.dumps(summary, indent=2) + "\n", run_dir / "comparison.json")
+    write_text_atomic(strict_json(summary), run_dir / "comparison.json")
     print(f"\ncomparison: {run_dir / 'comparison.md'}; figures: {len(written)} PNG in {run_dir}")
     return summary
 
@@ -149,7 +149,7 @@ def write_seed_comparison(
     markdown = seed_markdown(table, reference, seeds)
     write_text_atomic(markdown, run_dir / "comparison.md")
     report = {"reference": reference, "seeds": seeds, "scenes": table}
-    write_text_atomic(json.dumps(report, indent=2) + "\n", run_dir / "comparison.json")
+    write_text_atomic(strict_json(report), run_dir / "comparison.json")
     print(f"\nOver training seeds {seeds} (each seed's tables and figures: seed_<n>/)\n")
     print(markdown)
     print(f"comparison over seeds: {run_dir / 'comparison.md'}")

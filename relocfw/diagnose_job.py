@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -19,6 +18,7 @@ import numpy as np
 from relocfw import diagnose_figures
 from relocfw.checkpoints import write_text_atomic
 from relocfw.diagnosis import Picks, QueryWindows, picks_of, summarise_queries
+from relocfw.json_output import strict_json
 
 CHOICE_NAMES = {
     "centre": "centre crop",
@@ -40,23 +40,6 @@ WINDOW_COLUMNS = (
     "is_oracle",
     "is_oracle_orientation",
 )
-
-
-def json_ready(value: Any) -> Any:
-    """Strict JSON: NaN (undefined) becomes null, an infinite error the string "inf"."""
-    if isinstance(value, dict):
-        return {k: json_ready(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [json_ready(v) for v in value]
-    if isinstance(value, float | np.floating):
-        if math.isnan(value):
-            return None
-        if math.isinf(value):
-            return "inf" if value > 0 else "-inf"
-        return float(value)
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 def number(value: float, digits: int) -> str:
@@ -177,7 +160,7 @@ def write_diagnosis(
         "scenes": {scene: summary},
         "figures": [str(p) for p in written],
     }
-    write_text_atomic(json.dumps(json_ready(report), indent=2) + "\n", run_dir / "diagnose.json")
+    write_text_atomic(strict_json(report), run_dir / "diagnose.json")
     print("\n" + markdown)
     print(
         f"diagnosis: {run_dir / 'diagnose.md'}, {run_dir / 'diagnose.json'}, "

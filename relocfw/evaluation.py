@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from relocfw.data.frames import Frame
-from relocfw.geometry import orientation_error_deg, position_error
+from relocfw.geometry import QUATERNION_MINIMUM, orientation_error_deg, position_error
 from relocfw.metrics import accuracy_metrics, failed_as_infinite
 from relocfw.pipeline import Relocalizer
 from relocfw.progress import Progress
@@ -28,19 +28,29 @@ class MethodResult:
     frames: tuple[Frame, ...]
     answers: tuple[Localization, ...]
 
+    def failed(self) -> np.ndarray:
+        """[N] True where the answer has no usable pose: any non-finite number, or a
+        quaternion of (near) zero norm. Both of its errors are then +inf."""
+        positions = np.stack([a.pose.position for a in self.answers])
+        quaternions = np.stack([a.pose.quaternion for a in self.answers])
+        finite = np.isfinite(positions).all(axis=1) & np.isfinite(quaternions).all(axis=1)
+        norms = np.linalg.norm(np.where(np.isfinite(quaternions), quaternions, 0.0), axis=1)
+        return ~finite | (norms < QUATERNION_MINIMUM)
+
     def position_errors(self) -> np.ndarray:
         errors = position_error(
             np.stack([a.pose.position for a in self.answers]),
             np.stack([f.pose.position for f in self.frames]),
         )
-        return failed_as_infinite(errors)
+        return np.where(self.failed(), np.inf, failed_as_infinite(errors))
 
     def orientation_errors(self) -> np.ndarray:
-        errors = orientation_error_deg(
-            np.stack([a.pose.quaternion for a in self.answers]),
-            np.stack([f.pose.quaternion for f in self.frames]),
-        )
-        return failed_as_infinite(errors)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            errors = orientation_error_deg(
+                np.stack([a.pose.quaternion for a in self.answers]),
+                np.stack([f.pose.quaternion for f in self.frames]),
+            )
+        return np.where(self.failed(), np.inf, failed_as_infinite(errors))
 
 
 def evaluate(

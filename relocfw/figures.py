@@ -43,13 +43,23 @@ def error_histogram(
     errors = [
         r.position_errors() if kind == "position" else r.orientation_errors() for r in results
     ]
-    bins = np.linspace(0, max(extent, max(e.max() for e in errors)), 30)
+    finite = [e[np.isfinite(e)] for e in errors]
+    top = max([extent, *(float(f.max()) for f in finite if len(f))])
+    bins = np.linspace(0, top, 30)
     figure, axis = plt.subplots(figsize=(7, 4.5))
     for result, error in zip(results, errors, strict=True):
         under, over = np.mean(error < good), np.mean(error > bad)
         shares = f"{under:.0%} < {good:g}{unit}, {over:.0%} > {bad:g}{unit}"
+        failed = int(np.sum(~np.isfinite(error)))
+        if failed:
+            shares += f", {failed} failed (in the last bin)"
+        # A failed query (inf) is drawn in the last bin, never left out.
         axis.hist(
-            error, bins=bins, histtype="step", linewidth=1.8, label=f"{result.method}: {shares}"
+            np.minimum(error, top),
+            bins=bins,
+            histtype="step",
+            linewidth=1.8,
+            label=f"{result.method}: {shares}",
         )
     for value in (good, bad):
         axis.axvline(value, color="grey", linestyle=":", linewidth=1)
@@ -63,9 +73,18 @@ def error_histogram(
 def error_curves(results: Sequence[MethodResult], path: Path, title: str = "") -> Path:
     """Figure 8: position and orientation error of every test image, in order."""
     figure, (top, bottom) = plt.subplots(2, 1, figsize=(12, 6), sharex=True)
-    for result in results:
-        top.plot(result.position_errors(), linewidth=1.2, label=result.method)
-        bottom.plot(result.orientation_errors(), linewidth=1.2, label=result.method)
+    for axis, kind in ((top, "position"), (bottom, "orientation")):
+        errors = [
+            r.position_errors() if kind == "position" else r.orientation_errors() for r in results
+        ]
+        finite = [e[np.isfinite(e)] for e in errors]
+        ceiling = max([1e-9, *(float(f.max()) for f in finite if len(f))]) * 1.05
+        for result, error in zip(results, errors, strict=True):
+            # Failed queries (inf) are drawn at the top of the axis with an x.
+            (line,) = axis.plot(np.minimum(error, ceiling), linewidth=1.2, label=result.method)
+            failed = np.flatnonzero(~np.isfinite(error))
+            if len(failed):
+                axis.plot(failed, np.full(len(failed), ceiling), "x", color=line.get_color())
     top.set_ylabel("position error (m)")
     bottom.set_ylabel("orientation error (deg)")
     bottom.set_xlabel("test image (trajectory order)")

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -25,6 +24,7 @@ from relocfw.evaluation import (
     summarise,
 )
 from relocfw.interfaces import Backbone
+from relocfw.json_output import strict_json
 from relocfw.pipeline import Relocalizer
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.report import format_table
@@ -131,7 +131,7 @@ def write_results(results: Sequence[MethodResult], run_dir: Path, name: str = ""
     summaries = [summarise(r) for r in results]
     run_dir = Path(run_dir)
     write_text_atomic(per_image_csv(results), run_dir / f"results{name}.csv")
-    write_text_atomic(json.dumps(summaries, indent=2) + "\n", run_dir / f"summary{name}.json")
+    write_text_atomic(strict_json(summaries), run_dir / f"summary{name}.json")
     write_text_atomic(summary_csv(summaries), run_dir / f"summary{name}.csv")
     table = format_table(summaries)
     write_text_atomic(table + "\n", run_dir / f"table{name}.txt")

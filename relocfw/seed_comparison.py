@@ -104,6 +104,7 @@ def seed_markdown(
         "median position (m)",
         "median orientation (deg)",
         *(band_title(m, d) for m, d in RECALL_BANDS),
+        "failed (per seed)",
         f"position vs {reference}: diff of medians (m) [95% CI], Wilcoxon p",
         f"orientation vs {reference}: diff of medians (deg) [95% CI], Wilcoxon p",
     ]
@@ -115,6 +116,7 @@ def seed_markdown(
                 s = stats[key]
                 cells.append(f"{s['mean']:{fmt}} +- {s['std']:{fmt}}")
             cells += [f"{stats[band_key(m, d)]['mean']:.1%}" for m, d in RECALL_BANDS]
+            cells.append(" ".join(str(n) for n in stats["failed_queries"]))
             tests = stats.get("vs_reference")
             if tests is None:
                 cells += ["(reference)", "(reference)"]

@@ -11,7 +11,7 @@ import torch
 from relocfw import Relocalizer
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.diagnose_job import json_ready
+from relocfw.json_output import json_ready
 from relocfw.diagnosis import diagnose, pick, picks_of, pose_errors, spearman, summarise_headroom
 from relocfw.geometry import orientation_error_deg, position_error
 from relocfw.plugins.centre_crop import CentreCrop

@@ -88,9 +88,48 @@ def test_compare_over_two_training_seeds(tmp_path):
     assert "Wilcoxon" in (run_dir / "comparison.md").read_text()
 
 
-@pytest.mark.parametrize("seeds", ["[0,0]", "[]", "[-1]"])
+@pytest.mark.parametrize(
+    "seeds",
+    [
+        "compare.seeds=[0,0]",
+        "compare.seeds=[]",
+        "compare.seeds=[-1]",
+        "compare.seeds=3",
+        "train.seed=4",
+    ],
+)
 def test_bad_seed_lists_are_refused(tmp_path, seeds):
-    args = [*TINY_OVERRIDES, "task=compare", f"compare.seeds={seeds}"]
+    args = [*TINY_OVERRIDES, "task=compare", "compare.seeds=[0,1]", seeds]
     result = relocfw(args, tmp_path, tmp_path / "cache")
     assert result.returncode != 0
     assert "compare.seeds" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_a_method_that_fails_queries_is_written_strictly_and_counted(tmp_path):
+    import math
+
+    from relocfw.compare_job import write_comparison, write_seed_comparison
+
+    good = [0.1, 0.2, 0.3, 0.4]
+    failing = [0.1, float("nan"), 0.3, float("nan")]  # two queries without a pose
+    results = {
+        seed: {"room": {"Ref": answered("Ref", good), "Lost": answered("Lost", failing)}}
+        for seed in (0, 1)
+    }
+    floor = answered("mean training pose", [1.0] * 4)
+    training = {"room": floor.frames}
+    for seed in (0, 1):
+        write_comparison(results[seed], training, {}, "Ref", tmp_path / f"seed_{seed}")
+    report = write_seed_comparison(results, {"room": floor}, "Ref", tmp_path)
+    lost = report["scenes"]["room"]["Lost"]
+    assert lost["failed_queries"] == [2, 2]
+    assert lost["median_position_m"]["mean"] == pytest.approx((0.3 + math.inf) / 2)
+    # Strict JSON everywhere (no NaN / Infinity tokens), failures written as "inf".
+    for path in [tmp_path / "comparison.json", *tmp_path.glob("seed_*/*.json")]:
+        text = path.read_text()
+        assert "Infinity" not in text and "NaN" not in text, path
+        json.loads(text)
+    summary = json.loads((tmp_path / "seed_0" / "summary_room.json").read_text())
+    assert summary[-1]["mean_position_m"] == "inf" and summary[-1]["failed_queries"] == 2
+    assert "| room | Lost |" in (tmp_path / "comparison.md").read_text()
+    assert (tmp_path / "seed_0" / "room_position_error_histogram.png").stat().st_size > 0

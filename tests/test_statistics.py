@@ -42,11 +42,28 @@ def test_identical_answers_and_shared_failures_are_ties():
     assert difference(np.array([np.inf]), np.array([1.0]))[0] == np.inf
 
 
-def test_the_verdict_needs_both_tests():
-    assert verdict(0.001, -0.2, -0.1) == "significantly lower"
-    assert verdict(0.001, -0.2, 0.1).startswith("inconclusive")
-    assert verdict(0.2, 0.1, 0.2).startswith("inconclusive")
-    assert verdict(0.2, -0.1, 0.2) == "no significant difference"
+def test_the_verdict_needs_both_tests_in_the_same_direction():
+    assert verdict(0.001, -0.2, -0.1, direction=-1) == "significantly lower"
+    assert verdict(0.001, -0.2, 0.1, direction=-1).startswith("inconclusive")
+    assert verdict(0.2, 0.1, 0.2, direction=1).startswith("inconclusive")
+    assert verdict(0.2, -0.1, 0.2, direction=1) == "no significant difference"
+    # Medians lower, but the signed ranks lean the other way: not a finding.
+    assert verdict(0.001, -0.2, -0.1, direction=1).startswith("inconclusive")
+
+
+def test_a_method_that_fails_every_query_is_significantly_worse():
+    rng = np.random.default_rng(0)
+    reference = rng.exponential(1.0, size=(2, 50))
+    failed = np.full_like(reference, np.inf)
+    test = paired_test(failed, reference)
+    assert test["bootstrap_95"] == [np.inf, np.inf]
+    assert test["median_difference"] == np.inf
+    assert test["verdict"] == "significantly higher"
+    # Failing a third of the queries moves the median but leaves the interval finite.
+    some = reference.copy()
+    some[:, ::3] = np.inf
+    low, high = paired_test(some, reference)["bootstrap_95"]
+    assert np.isfinite(low) and 0 < low <= high
 
 
 def test_spread_over_seeds():
