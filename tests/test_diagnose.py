@@ -11,9 +11,9 @@ import torch
 from relocfw import Relocalizer
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.json_output import json_ready
 from relocfw.diagnosis import diagnose, pick, picks_of, pose_errors, spearman, summarise_headroom
 from relocfw.geometry import orientation_error_deg, position_error
+from relocfw.json_output import json_ready
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.posenet import PoseNet
