@@ -24,7 +24,7 @@ from relocfw.data.frames import Frame, mean_pose
 from relocfw.evaluation import MethodResult, constant_answer
 from relocfw.jobs import write_results
 from relocfw.json_output import strict_json
-from relocfw.seed_comparison import SeedResults, seed_comparison, seed_markdown
+from relocfw.seed_comparison import SeedResults, seed_comparison, seed_markdown, seed_rows
 
 
 @dataclass(frozen=True)
@@ -141,13 +141,14 @@ def write_seed_comparison(
     run_dir: Path,
     bootstrap_seed: int = 0,
 ) -> dict[str, Any]:
-    """comparison.md / .json at the top of the run: the spread over training seeds
+    """comparison.md / .csv / .json at the top of the run: the spread over training seeds
     and each method's paired test against `reference` (printed too)."""
     run_dir = Path(run_dir)
     seeds = sorted(results)
     table = seed_comparison(results, floors, reference, bootstrap_seed)
     markdown = seed_markdown(table, reference, seeds)
     write_text_atomic(markdown, run_dir / "comparison.md")
+    write_text_atomic(as_csv(*seed_rows(table, reference)), run_dir / "comparison.csv")
     report = {"reference": reference, "seeds": seeds, "scenes": table}
     write_text_atomic(strict_json(report), run_dir / "comparison.json")
     print(f"\nOver training seeds {seeds} (each seed's tables and figures: seed_<n>/)\n")

@@ -46,6 +46,11 @@ def number(value: float, digits: int) -> str:
     return "n/a" if math.isnan(value) else f"{value:.{digits}f}"
 
 
+def p_value(value: float) -> str:
+    """Two significant digits: a small p reads 3.2e-06, never 0.000."""
+    return "n/a" if math.isnan(value) else f"{value:.2g}"
+
+
 def as_markdown(scene: str, summary: dict[str, Any]) -> str:
     """The scene's table: each crop choice's errors, then the premise's tests."""
     lines = [
@@ -69,7 +74,7 @@ def as_markdown(scene: str, summary: dict[str, Any]) -> str:
         f"- min map distance vs centre crop (position): better on "
         f"{versus['share_better_position']:.0%} of queries, worse on "
         f"{versus['share_worse_position']:.0%}; paired Wilcoxon signed-rank p = "
-        f"{number(versus['wilcoxon_p_position'], 3)} ({versus['wilcoxon_pairs']} untied pairs)",
+        f"{p_value(versus['wilcoxon_p_position'])} ({versus['wilcoxon_pairs']} untied pairs)",
         f"- Spearman(map distance, position error) within a query: median "
         f"{number(within['median'], 2)}, positive in {number(100 * within['share_positive'], 0)}% "
         f"of {within['queries']} queries",

@@ -94,10 +94,11 @@ def paired_cell(test: Mapping[str, object], unit_format: str) -> str:
     )
 
 
-def seed_markdown(
-    table: Mapping[str, Mapping[str, Mapping[str, object]]], reference: str, seeds: Sequence[int]
-) -> str:
-    """scene x method: medians as mean +- std over seeds, bands, paired tests."""
+def seed_rows(
+    table: Mapping[str, Mapping[str, Mapping[str, object]]], reference: str
+) -> tuple[list[str], list[list[str]]]:
+    """Header and rows, scene x method: medians as mean +- std over seeds, bands,
+    failures and the paired tests."""
     header = [
         "scene",
         "method",
@@ -124,6 +125,14 @@ def seed_markdown(
                 cells.append(paired_cell(tests["position_m"], ".3f"))
                 cells.append(paired_cell(tests["orientation_deg"], ".2f"))
             rows.append(cells)
+    return header, rows
+
+
+def seed_markdown(
+    table: Mapping[str, Mapping[str, Mapping[str, object]]], reference: str, seeds: Sequence[int]
+) -> str:
+    """The seed table in Markdown, with a note on how to read it."""
+    header, rows = seed_rows(table, reference)
     note = (
         f"\nTraining seeds {', '.join(str(s) for s in seeds)}: medians are mean +- std over "
         "seeds; bands are the mean share of queries within both limits. Paired tests use "

@@ -132,4 +132,5 @@ def test_a_method_that_fails_queries_is_written_strictly_and_counted(tmp_path):
     summary = json.loads((tmp_path / "seed_0" / "summary_room.json").read_text())
     assert summary[-1]["mean_position_m"] == "inf" and summary[-1]["failed_queries"] == 2
     assert "| room | Lost |" in (tmp_path / "comparison.md").read_text()
+    assert "room,Lost," in (tmp_path / "comparison.csv").read_text()
     assert (tmp_path / "seed_0" / "room_position_error_histogram.png").stat().st_size > 0
