@@ -21,7 +21,7 @@ from relocfw.comparison import (
     uncertainty_check,
 )
 from relocfw.data.frames import Frame, mean_pose
-from relocfw.evaluation import MethodResult, constant_answer
+from relocfw.evaluation import MethodResult, constant_answer, uncertainty_quality_of
 from relocfw.jobs import write_results
 from relocfw.json_output import strict_json
 from relocfw.seed_comparison import SeedResults, seed_comparison, seed_markdown, seed_rows
@@ -107,6 +107,25 @@ def write_comparison(
             )
         checks = {m: uncertainty_check(r) for m, r in by_method.items()}
         checks = {m: c for m, c in checks.items() if c is not None}
+        qualities = {m: uncertainty_quality_of(r) for m, r in by_method.items()}
+        qualities = {m: q for m, q in qualities.items() if q is not None}
+        for method, quality in qualities.items():
+            checks[method]["quality"] = quality
+            written.append(
+                figures.uncertainty_against_error(
+                    by_method[method],
+                    quality,
+                    Path(f"{out}_{safe_name(method)}_uncertainty.png"),
+                    title,
+                )
+            )
+            print(
+                f"{method} uncertainty quality ({scene}): AUSE position "
+                f"{quality['position']['ause']:.3f} m, orientation "
+                f"{quality['orientation']['ause']:.2f} deg; Spearman(spread, error) position "
+                f"{quality['position']['spearman_spread_error']:.2f}, orientation "
+                f"{quality['orientation']['spearman_spread_error']:.2f}"
+            )
         for method, check in checks.items():
             print(
                 f"{method} uncertainty ({scene}): median position error of the "

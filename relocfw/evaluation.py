@@ -14,6 +14,7 @@ from relocfw.geometry import QUATERNION_MINIMUM, orientation_error_deg, position
 from relocfw.metrics import accuracy_metrics, failed_as_infinite
 from relocfw.pipeline import Relocalizer
 from relocfw.progress import Progress
+from relocfw.uncertainty import uncertainty_quality
 from relocfw.values import Crop, Localization, Pose
 
 
@@ -89,10 +90,11 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
 
     Time is reported as the median (robust to a slow moment of the machine) and the
     mean over the queries of the timed (warmed-up) run. A failed query counts as
-    infinitely wrong.
+    infinitely wrong. A sampled method (MC dropout) also gets its uncertainty
+    measures (`uncertainty_columns`).
     """
     positions = result.position_errors()
-    return {
+    summary = {
         "method": result.method,
         "queries": len(positions),
         **accuracy_metrics(positions, result.orientation_errors()),
@@ -101,6 +103,32 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
         "mean_network_passes": float(np.mean([a.network_passes for a in result.answers])),
         "mean_crops_scored": float(np.mean([a.evaluations for a in result.answers])),
     }
+    return summary | uncertainty_columns(result)
+
+
+def uncertainty_quality_of(result: MethodResult) -> dict[str, object] | None:
+    """relocfw.uncertainty's measures of a sampled method's spreads; None if unsampled."""
+    return uncertainty_quality(
+        result.position_errors(),
+        result.orientation_errors(),
+        np.array([a.position_spread for a in result.answers]),
+        np.array([a.orientation_spread_deg for a in result.answers]),
+    )
+
+
+def uncertainty_columns(result: MethodResult) -> dict[str, float]:
+    """Flat summary columns of the uncertainty measures (none for an unsampled method)."""
+    quality = uncertainty_quality_of(result)
+    if quality is None:
+        return {}
+    columns = {}
+    for kind, unit in (("position", "m"), ("orientation", "deg")):
+        measures = quality[kind]
+        columns[f"{kind}_spread_error_spearman"] = measures["spearman_spread_error"]
+        columns[f"{kind}_ause_{unit}"] = measures["ause"]
+        for share, median in measures["median_after_rejecting"].items():
+            columns[f"median_{kind}_{unit}_rejecting_{share}"] = median
+    return columns
 
 
 ANSWER_COLUMNS = (

@@ -142,3 +142,35 @@ def tsne_of_map(
     axis.set_xticks([])
     axis.set_yticks([])
     return save(figure, path)
+
+
+def uncertainty_against_error(
+    result: MethodResult, quality: dict, path: Path, title: str = ""
+) -> Path:
+    """The authors' view, one point per query: spread against error (position and
+    orientation), and each kind's sparsification curve against its oracle."""
+    figure, axes = plt.subplots(2, 2, figsize=(11, 8))
+    spreads = {
+        "position": np.array([a.position_spread for a in result.answers]),
+        "orientation": np.array([a.orientation_spread_deg for a in result.answers]),
+    }
+    errors = {"position": result.position_errors(), "orientation": result.orientation_errors()}
+    for row, (kind, unit) in enumerate((("position", "m"), ("orientation", "deg"))):
+        measures = quality[kind]
+        scatter, curves = axes[row]
+        finite = np.isfinite(errors[kind])
+        scatter.scatter(spreads[kind][finite], errors[kind][finite], s=10)
+        scatter.set_xlabel(f"{kind} spread ({unit})")
+        scatter.set_ylabel(f"{kind} error ({unit})")
+        scatter.set_title(f"Spearman {measures['spearman_spread_error']:.2f}", fontsize=9)
+        sparsification = measures["sparsification"]
+        curves.plot(
+            sparsification["fractions"], sparsification["by_uncertainty"], label="by spread"
+        )
+        curves.plot(sparsification["fractions"], sparsification["oracle"], label="by true error")
+        curves.set_xlabel("fraction of queries removed (most uncertain first)")
+        curves.set_ylabel(f"median {kind} error of the rest ({unit})")
+        curves.set_title(f"AUSE {measures['ause']:.3g} {unit}", fontsize=9)
+        curves.legend(fontsize=8)
+    figure.suptitle(f"{result.method}: uncertainty against error {title}".strip())
+    return save(figure, path)

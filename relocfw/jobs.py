@@ -119,7 +119,9 @@ def run_method(
 def summary_csv(summaries: Sequence[dict[str, Any]]) -> str:
     """One row per method, one column per summary key (metrics, shares and costs)."""
     stream = io.StringIO()
-    writer = csv.DictWriter(stream, fieldnames=list(summaries[0]))
+    # Sampled methods carry extra uncertainty columns: the union, in first-seen order.
+    fields = list(dict.fromkeys(key for summary in summaries for key in summary))
+    writer = csv.DictWriter(stream, fieldnames=fields, restval="")
     writer.writeheader()
     writer.writerows(summaries)
     return stream.getvalue()

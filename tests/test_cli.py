@@ -90,6 +90,7 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
     assert "Bayesian PoseNet uncertainty" in result.stdout
     pngs = sorted(p.name for p in run_dir.glob("*.png"))
     assert pngs == [
+        "synthetic_Bayesian_PoseNet_uncertainty.png",
         "synthetic_error_per_image.png",
         "synthetic_orientation_error_histogram.png",
         "synthetic_position_error_histogram.png",
@@ -98,6 +99,9 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
     ]
     summary = json.loads((run_dir / "comparison.json").read_text())
     assert "Bayesian PoseNet" in summary["scenes"]["synthetic"]["uncertainty"]
+    quality = summary["scenes"]["synthetic"]["uncertainty"]["Bayesian PoseNet"]["quality"]
+    assert set(quality) == {"position", "orientation"} and "ause" in quality["position"]
+    assert "Bayesian PoseNet uncertainty quality" in result.stdout
     # The GA methods ran once per crop seed; the deterministic ones did not.
     spread = summary["scenes"]["synthetic"]["crop_seed_spread"]
     assert sorted(spread) == ["GA + exhaustive", "Ours (GA + k-means)", "Ours, shared scoring"]

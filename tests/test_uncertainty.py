@@ -1,0 +1,97 @@
+"""Uncertainty quality on constructed cases: sparsification, AUSE, rejection medians."""
+
+import numpy as np
+import pytest
+
+from relocfw.uncertainty import (
+    ause,
+    rejection_medians,
+    sparsification_curve,
+    uncertainty_quality,
+)
+
+ERRORS = np.array([0.5, 0.1, 0.9, 0.3, 0.7, 0.2, 0.4, 0.8, 0.6, 1.0])
+
+
+def test_the_sparsification_curve_removes_the_most_uncertain_first():
+    order = np.argsort(-ERRORS)  # largest error first: the oracle
+    curve = sparsification_curve(ERRORS, order)
+    assert curve[0] == pytest.approx(np.median(ERRORS))
+    assert curve[1] == pytest.approx(np.median(np.sort(ERRORS)[:9]))  # 1.0 removed
+    assert curve[-1] == pytest.approx(0.1)  # only the smallest error left
+    assert np.all(np.diff(curve) <= 0)
+
+
+def test_uncertainty_equal_to_error_gives_ause_zero():
+    assert ause(ERRORS, ERRORS)["ause"] == 0.0
+    # Any increasing function of the error ranks the same: still zero.
+    assert ause(ERRORS, np.exp(3 * ERRORS))["ause"] == 0.0
+
+
+def test_reversed_uncertainty_gives_the_largest_ause():
+    reversed_area = ause(ERRORS, -ERRORS)["ause"]
+    # By hand: removing the smallest errors first keeps the largest ones.
+    kept_largest = [np.median(np.sort(ERRORS)[i:]) for i in range(10)]
+    kept_smallest = [np.median(np.sort(ERRORS)[: 10 - i]) for i in range(10)]
+    assert reversed_area == pytest.approx(np.mean(np.subtract(kept_largest, kept_smallest)))
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        assert ause(ERRORS, rng.permutation(ERRORS))["ause"] <= reversed_area + 1e-12
+
+
+def test_median_after_rejecting_the_most_uncertain():
+    # The spread flags the three worst answers exactly, then ranks the rest in reverse.
+    spread = np.array([4, 9, 20, 6, 18, 8, 5, 19, 3, 21], dtype=float)
+    medians = rejection_medians(ERRORS, spread)
+    # 10%: drops 1.0; 20%: also 0.9; 30%: also 0.8 (the three largest spreads).
+    assert medians["10%"] == pytest.approx(np.median([0.5, 0.1, 0.9, 0.3, 0.7, 0.2, 0.4, 0.8, 0.6]))
+    assert medians["20%"] == pytest.approx(np.median([0.5, 0.1, 0.3, 0.7, 0.2, 0.4, 0.8, 0.6]))
+    assert medians["30%"] == pytest.approx(np.median([0.5, 0.1, 0.3, 0.7, 0.2, 0.4, 0.6]))
+
+
+def test_quality_of_both_spreads_and_none_when_not_sampled():
+    quality = uncertainty_quality(ERRORS, ERRORS * 10, ERRORS, -ERRORS)
+    assert quality["position"]["spearman_spread_error"] == pytest.approx(1.0)
+    assert quality["position"]["ause"] == 0.0
+    assert quality["orientation"]["spearman_spread_error"] == pytest.approx(-1.0)
+    assert quality["orientation"]["ause"] > 0
+    nan = np.full(10, np.nan)
+    assert uncertainty_quality(ERRORS, ERRORS, nan, nan) is None
+
+
+def test_a_sampled_methods_summary_carries_its_uncertainty_columns():
+    from pathlib import Path
+
+    from relocfw.data.frames import Frame
+    from relocfw.evaluation import MethodResult, summarise
+    from relocfw.jobs import summary_csv
+    from relocfw.values import Crop, Localization, Pose
+
+    identity = np.array([1.0, 0.0, 0.0, 0.0])
+    truth = Pose(np.zeros(3), identity)
+    frames = tuple(Frame(f"q{i}", Path(f"q{i}.png"), truth) for i in range(len(ERRORS)))
+
+    def answers(spreads):
+        return tuple(
+            Localization(
+                Pose([e, 0.0, 0.0], identity),
+                Crop(0, 0, 1),
+                0.0,
+                1,
+                0.0,
+                position_spread=s,
+                orientation_spread_deg=s,
+            )
+            for e, s in zip(ERRORS, spreads, strict=True)
+        )
+
+    sampled = summarise(MethodResult("sampled", frames, answers(ERRORS)))
+    assert sampled["position_spread_error_spearman"] == pytest.approx(1.0)
+    assert sampled["position_ause_m"] == 0.0
+    assert sampled["median_position_m_rejecting_30%"] == pytest.approx(
+        np.median(np.sort(ERRORS)[:7])
+    )
+    plain = summarise(MethodResult("plain", frames, answers([float("nan")] * len(ERRORS))))
+    assert "position_ause_m" not in plain
+    header = summary_csv([plain, sampled]).splitlines()[0]
+    assert header.endswith("median_orientation_deg_rejecting_30%")
