@@ -173,4 +173,5 @@ def uncertainty_against_error(
         curves.set_title(f"AUSE {measures['ause']:.3g} {unit}", fontsize=9)
         curves.legend(fontsize=8)
     figure.suptitle(f"{result.method}: uncertainty against error {title}".strip())
+    figure.tight_layout()
     return save(figure, path)
