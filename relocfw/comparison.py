@@ -14,9 +14,14 @@ AVERAGE = "average"
 
 
 def error_decrease(reference: float, value: float) -> float:
-    """How much lower `value` is than `reference`, in percent (negative: higher)."""
-    if reference == 0:
-        return 0.0 if value == 0 else float("-inf")
+    """How much lower `value` is than `reference`, in percent (negative: higher); an
+    infinite error (failed queries) counts as infinitely high."""
+    if reference == value:
+        return 0.0  # both zero, or both failed (inf)
+    if reference == 0 or np.isinf(value):
+        return float("-inf")
+    if np.isinf(reference):
+        return 100.0  # the reference failed, the method did not
     return 100.0 * (reference - value) / reference
 
 

@@ -175,6 +175,14 @@ def error_summary(position: np.ndarray, orientation: np.ndarray) -> dict[str, fl
     }
 
 
+def distinct_windows(distances: np.ndarray, errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each distinct window once: offsets that round to one window share its distance
+    and error, and counting them several times would weight that window in a rank
+    correlation by how many offsets land on it."""
+    pairs = np.unique(np.column_stack([distances, errors]), axis=0)
+    return pairs[:, 0], pairs[:, 1]
+
+
 def summarise_headroom(
     distances: Sequence[np.ndarray],
     position_errors: Sequence[np.ndarray],
@@ -187,7 +195,7 @@ def summarise_headroom(
     `errors` (median/mean of each choice of CHOICES), `min_distance_vs_centre` (share
     of queries where min-distance is more / less accurate in position, paired
     Wilcoxon p), `spearman_within` (rank correlation of distance with position error
-    inside each query: median over queries and share positive) and
+    over each query's distinct windows: median over queries and share positive) and
     `spearman_across` (each query's min distance vs its window's position error).
     """
     count = len(distances)
@@ -206,7 +214,9 @@ def summarise_headroom(
     }
     searched, centre = chosen["min_distance"][0], chosen["centre"][0]
     p_value, pairs = signed_rank_p(searched, centre)
-    within = np.array([spearman(d, p) for d, p in zip(distances, position_errors, strict=True)])
+    within = np.array(
+        [spearman(*distinct_windows(d, p)) for d, p in zip(distances, position_errors, strict=True)]
+    )
     defined = within[~np.isnan(within)]
     nearest = np.array(
         [np.asarray(d)[k.min_distance] for d, k in zip(distances, picks, strict=True)]

@@ -38,6 +38,10 @@ def test_error_decrease_arithmetic():
     assert error_decrease(2.0, 1.5) == pytest.approx(25.0)
     assert error_decrease(1.0, 1.2) == pytest.approx(-20.0)
     assert error_decrease(0.0, 0.0) == 0.0
+    inf = float("inf")  # failed queries: an infinitely high error
+    assert error_decrease(1.0, inf) == -inf
+    assert error_decrease(inf, 1.0) == 100.0
+    assert error_decrease(inf, inf) == 0.0
 
 
 def test_table_rows_and_average():

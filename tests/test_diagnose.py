@@ -192,3 +192,20 @@ def test_cli_diagnose_writes_table_windows_and_figures(tmp_path):
     assert bad.returncode == 2
     assert "diagnose.table3_queries must be at least 0, got -1" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_within_query_correlation_counts_each_distinct_window_once():
+    from scipy.stats import spearmanr
+
+    from relocfw.diagnosis import distinct_windows
+
+    # Three windows; the first is shared by four offsets (as at 96 px, where 161 offsets
+    # land on 38 windows). Ranked once each: rho(d, e) = -0.5.
+    distances = np.array([1.0, 1.0, 1.0, 1.0, 2.0, 3.0])
+    errors = np.array([0.5, 0.5, 0.5, 0.5, 0.1, 0.2])
+    d, e = distinct_windows(distances, errors)
+    assert d.tolist() == [1.0, 2.0, 3.0] and spearman(d, e) == pytest.approx(-0.5)
+    summary = summarise_headroom([distances], [errors], [np.zeros(6)], [0])
+    assert summary["spearman_within"]["median"] == pytest.approx(-0.5)
+    # Counted per offset, the shared window would weigh four times:
+    assert spearmanr(distances, errors)[0] != pytest.approx(-0.5)
