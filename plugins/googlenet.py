@@ -8,6 +8,8 @@ training from scratch on a few hundred images work at all.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import torch
 from torch import nn
 
@@ -86,12 +88,28 @@ class GoogLeNetTrunk(nn.Module):
         self.aux_channels = (self.inception4a.out_channels, self.inception4d.out_channels)
         self.out_channels = self.inception5b.out_channels
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, drop: Callable[[torch.Tensor], torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The 4a, 4d and 5b maps; `drop`, if given, is applied after every inception
+        block (Bayesian PoseNet's "all layers" dropout)."""
+        return self.upper(self.lower(x), drop)
+
+    def lower(self, x: torch.Tensor) -> torch.Tensor:
+        """Stem and inception 3a: everything below the first place a dropout can sit,
+        so Monte Carlo sampling runs it once per query, not once per sample."""
         x = self.maxpool1(self.conv1(x))
         x = self.maxpool2(self.conv3(self.conv2(x)))
-        x = self.maxpool3(self.inception3b(self.inception3a(x)))
-        at_4a = self.inception4a(x)
-        at_4d = self.inception4d(self.inception4c(self.inception4b(at_4a)))
-        x = self.maxpool4(self.inception4e(at_4d))
-        at_5b = self.inception5b(self.inception5a(x))
+        return self.inception3a(x)
+
+    def upper(
+        self, at_3a: torch.Tensor, drop: Callable[[torch.Tensor], torch.Tensor] | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """From inception 3a's output to the 4a, 4d and 5b maps, `drop` after each block."""
+        d = drop or (lambda t: t)
+        x = self.maxpool3(d(self.inception3b(d(at_3a))))
+        at_4a = d(self.inception4a(x))
+        at_4d = d(self.inception4d(d(self.inception4c(d(self.inception4b(at_4a))))))
+        x = self.maxpool4(d(self.inception4e(at_4d)))
+        at_5b = d(self.inception5b(d(self.inception5a(x))))
         return at_4a, at_4d, at_5b

@@ -29,6 +29,17 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 # turns ImageNet-normalised input back into that), so its weights expect exactly that.
 TORCHVISION_GOOGLENET_MEAN = (0.5, 0.5, 0.5)
 TORCHVISION_GOOGLENET_STD = (0.5, 0.5, 0.5)
+# Where Monte Carlo dropout samples (Bayesian PoseNet, Kendall & Cipolla 2016):
+# head: only before the pose regressor (PoseNet's own dropout); linear above it, so the
+#   samples' mean is PoseNet's pose in expectation and the spread is a fixed function
+#   of the descriptor, not the model's doubt.
+# kendall: the released Bayesian PoseNet: also on inception 5b's output, before the
+#   average pool, so the samples differ in their descriptors.
+# all: after every inception block.
+# kendall and all drop in training too: they are different models (checkpoint key).
+DROPOUT_VARIANTS = ("head", "kendall", "all")
+# Most sample x crop images one forward pass of the sampled layers takes (memory).
+SAMPLED_IMAGES_PER_PASS = 256
 # torchvision modules with no counterpart here: the ImageNet classifiers.
 DROPPED_PREFIXES = ("fc.", "aux1.fc2.", "aux2.fc2.")
 
@@ -60,6 +71,11 @@ class PoseNet(Backbone):
         mc_samples: Monte Carlo dropout samples at test time (Bayesian PoseNet,
             Kendall & Cipolla 2016); 0 turns sampling off. A test-time option: it does
             not change the trained model, so it is not part of the checkpoint's key.
+        dropout_variant: where dropout sits, in training and when sampling: "head"
+            (before the regressor only), "kendall" (also on inception 5b's output) or
+            "all" (after every inception block); see DROPOUT_VARIANTS. The layers
+            below the first dropout run once per query, the rest once per sample,
+            all samples batched.
     """
 
     test_time_options = ("mc_samples",)
@@ -73,6 +89,7 @@ class PoseNet(Backbone):
         dropout: float = 0.5,
         weights: str | None = None,
         mc_samples: int = 0,
+        dropout_variant: str = "head",
     ) -> None:
         super().__init__()
         self.input_size = integer_at_least("input_size", input_size, 32)
@@ -82,6 +99,13 @@ class PoseNet(Backbone):
             raise ConfigError(f"width must be in (0, 4], got {width}")
         if not 0 <= probability("dropout", dropout) < 1:
             raise ConfigError(f"dropout must be in [0, 1), got {dropout}")
+        if dropout_variant not in DROPOUT_VARIANTS:
+            raise ConfigError(
+                f"dropout_variant must be one of {', '.join(DROPOUT_VARIANTS)}, "
+                f"got {dropout_variant!r}"
+            )
+        self.dropout_variant = dropout_variant
+        self.dropout_rate = float(dropout)
         self.trunk = GoogLeNetTrunk(width)
         self.aux1 = AuxiliaryHead(self.trunk.aux_channels[0], width)
         self.aux2 = AuxiliaryHead(self.trunk.aux_channels[1], width)
@@ -98,7 +122,13 @@ class PoseNet(Backbone):
             load_imagenet_weights(self, Path(weights))
 
     def forward(self, images: torch.Tensor) -> PoseOutput:
-        at_4a, at_4d, at_5b = self.trunk((images - self.mean) / self.std)
+        x = (images - self.mean) / self.std
+        if not self.training and self.mc_samples > 0 and self.dropout_variant != "head":
+            return self.sampled_below_descriptor(x)
+        drop = self.drop if self.training and self.dropout_variant == "all" else None
+        at_4a, at_4d, at_5b = self.trunk(x, drop)
+        if self.training and self.dropout_variant == "kendall":
+            at_5b = self.drop(at_5b)
         pooled = torch.flatten(nn.functional.adaptive_avg_pool2d(at_5b, 1), 1)
         output = self.head(pooled, self.to_world_positions, self.mc_samples)
         if not self.training:
@@ -108,11 +138,51 @@ class PoseNet(Backbone):
         )
         return dataclasses.replace(output, auxiliary=auxiliary)
 
+    def drop(self, maps: torch.Tensor) -> torch.Tensor:
+        """Dropout that is on whenever it is called (training, or sampling at test time)."""
+        return nn.functional.dropout(maps, self.dropout_rate, training=True)
+
+    def sampled_below_descriptor(self, x: torch.Tensor) -> PoseOutput:
+        """Monte Carlo answers of the kendall / all variants.
+
+        The layers below the first dropout run once for the batch; the layers above it
+        run for every sample, the samples batched (at most SAMPLED_IMAGES_PER_PASS
+        images per pass). The descriptor given to the index is the dropout-free one.
+        """
+        samples = self.mc_samples
+        if self.dropout_variant == "kendall":
+            below = self.trunk(x)[2]  # inception 5b's maps: the first dropout is on them
+
+            def above(maps: torch.Tensor) -> torch.Tensor:
+                return self.drop(maps)
+
+            clean = below
+        else:
+            below = self.trunk.lower(x)  # up to inception 3a: dropout follows it
+
+            def above(maps: torch.Tensor) -> torch.Tensor:
+                return self.trunk.upper(maps, self.drop)[2]
+
+            clean = self.trunk.upper(below)[2]
+        features = self.head.describe(pool(clean))
+        per_pass = max(1, SAMPLED_IMAGES_PER_PASS // len(x))
+        descriptors = []
+        for start in range(0, samples, per_pass):
+            count = min(per_pass, samples - start)
+            repeated = below.repeat(count, 1, 1, 1)  # sample-major: [count * B, ...]
+            descriptors.append(self.head.describe(pool(above(repeated))))
+        return self.head.sampled(torch.cat(descriptors), features, self.to_world_positions, samples)
+
     def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
         return self.trunk((images - self.mean) / self.std)[2]
 
     def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
         return self.head.describe(pooled)
+
+
+def pool(maps: torch.Tensor) -> torch.Tensor:
+    """[n, C, h, w] -> [n, C] global average."""
+    return torch.flatten(nn.functional.adaptive_avg_pool2d(maps, 1), 1)
 
 
 def torchvision_to_posenet_key(key: str) -> str | None:

@@ -73,10 +73,32 @@ class PoseHead(nn.Module):
             dropped = nn.functional.dropout(features, self.dropout_rate, self.training)
             positions, quaternions = self.regressor(dropped)
             return PoseOutput(to_world(positions), quaternions, features)
-        batch = len(features)
         # All masks in one batch: [S * B, D].
         repeated = features.unsqueeze(0).expand(mc_samples, -1, -1).reshape(-1, features.shape[1])
-        dropped = nn.functional.dropout(repeated, self.dropout_rate, training=True)
+        return self.sampled(repeated, features, to_world, mc_samples)
+
+    def sampled(
+        self,
+        descriptors: torch.Tensor,
+        features: torch.Tensor,
+        to_world: Callable[[torch.Tensor], torch.Tensor],
+        mc_samples: int,
+    ) -> PoseOutput:
+        """Monte Carlo answers from per-sample descriptors.
+
+        Args:
+            descriptors: [S * B, D], sample-major: the descriptors of S samples of a
+                batch of B (identical copies when only this head's dropout samples;
+                different when dropout below the descriptor sampled them too).
+            features: [B, D] the dropout-free descriptors, for the similarity index.
+
+        Returns:
+            The mean pose of the samples, with their position spread (m, sqrt of the
+            trace of the covariance) and orientation spread (deg, mean angle from the
+            mean rotation).
+        """
+        batch = len(features)
+        dropped = nn.functional.dropout(descriptors, self.dropout_rate, training=True)
         positions, quaternions = self.regressor(dropped)
         positions = to_world(positions).view(mc_samples, batch, 3)
         quaternions = quaternions.view(mc_samples, batch, 4)

@@ -80,17 +80,23 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
     run_dir = tmp_path / "compare"
     result = relocfw([*TINY_OVERRIDES, "task=compare", f"hydra.run.dir={run_dir}"], tmp_path, cache)
     assert result.returncode == 0, result.stderr
-    # Seven methods, one trained model.
-    assert result.stdout.count("(trained)") <= 1 and result.stdout.count("(reused)") >= 6
+    # Ten methods, three trained models: PoseNet's, and one per dropout variant that
+    # drops in training (kendall, all); every other row reuses one of them.
+    assert result.stdout.count("(trained)") <= 3 and result.stdout.count("(reused)") >= 7
     header = (run_dir / "comparison.csv").read_text().splitlines()[0]
     methods = ("PoseNet", "Bayesian PoseNet", "Retrieval", "Ours (GA + k-means)")
+    methods += ("Bayesian PoseNet (kendall)", "Bayesian PoseNet (all)")
     for method in (*methods, "Ours, shared scoring", "Sweep + k-means", "GA + exhaustive"):
         assert method in header
+    assert "Ours + MC dropout (kendall)" in header
     assert "Sweep + exhaustive" not in header  # changed search AND index: bounds nothing
     assert "Bayesian PoseNet uncertainty" in result.stdout
     pngs = sorted(p.name for p in run_dir.glob("*.png"))
     assert pngs == [
+        "synthetic_Bayesian_PoseNet__all__uncertainty.png",
+        "synthetic_Bayesian_PoseNet__kendall__uncertainty.png",
         "synthetic_Bayesian_PoseNet_uncertainty.png",
+        "synthetic_Ours___MC_dropout__kendall__uncertainty.png",
         "synthetic_error_per_image.png",
         "synthetic_orientation_error_histogram.png",
         "synthetic_position_error_histogram.png",
@@ -98,13 +104,24 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
         "synthetic_tsne_kmeans_map.png",
     ]
     summary = json.loads((run_dir / "comparison.json").read_text())
-    assert "Bayesian PoseNet" in summary["scenes"]["synthetic"]["uncertainty"]
-    quality = summary["scenes"]["synthetic"]["uncertainty"]["Bayesian PoseNet"]["quality"]
+    uncertainty = summary["scenes"]["synthetic"]["uncertainty"]
+    assert sorted(uncertainty) == [
+        "Bayesian PoseNet",
+        "Bayesian PoseNet (all)",
+        "Bayesian PoseNet (kendall)",
+        "Ours + MC dropout (kendall)",
+    ]
+    quality = uncertainty["Bayesian PoseNet"]["quality"]
     assert set(quality) == {"position", "orientation"} and "ause" in quality["position"]
     assert "Bayesian PoseNet uncertainty quality" in result.stdout
     # The GA methods ran once per crop seed; the deterministic ones did not.
     spread = summary["scenes"]["synthetic"]["crop_seed_spread"]
-    assert sorted(spread) == ["GA + exhaustive", "Ours (GA + k-means)", "Ours, shared scoring"]
+    assert sorted(spread) == [
+        "GA + exhaustive",
+        "Ours (GA + k-means)",
+        "Ours + MC dropout (kendall)",
+        "Ours, shared scoring",
+    ]
     assert spread["Ours (GA + k-means)"]["seeds"] == [0, 1, 2]
     assert len(spread["Ours (GA + k-means)"]["median_position_m"]) == 3
     assert "Ours (GA + k-means)" in (run_dir / "crop_seeds.md").read_text()

@@ -1,0 +1,100 @@
+"""Bayesian PoseNet's dropout placements: what each samples, and what runs once."""
+
+import numpy as np
+import pytest
+import torch
+
+from relocfw.errors import ConfigError
+from relocfw.plugins.posenet import PoseNet
+
+TINY = {"input_size": 32, "width": 0.125, "feature_dim": 16}
+
+
+def tiny_posenet(variant: str, samples: int) -> PoseNet:
+    torch.manual_seed(0)
+    model = PoseNet(**TINY, mc_samples=samples, dropout_variant=variant)
+    return model.eval()
+
+
+def images(count: int = 3) -> torch.Tensor:
+    return torch.rand(count, 3, 32, 32, generator=torch.Generator().manual_seed(1))
+
+
+class Calls:
+    """Batch sizes that reached a module, through a forward hook."""
+
+    def __init__(self, module: torch.nn.Module) -> None:
+        self.sizes: list[int] = []
+        module.register_forward_hook(lambda _m, args, _out: self.sizes.append(len(args[0])))
+
+
+@pytest.mark.parametrize("variant", ["kendall", "all"])
+def test_sampling_below_the_descriptor_changes_descriptors_and_the_mean_pose(variant):
+    model = tiny_posenet(variant, samples=8)
+    descriptors = Calls(model.head.descriptor)
+    with torch.inference_mode():
+        sampled = model(images())
+        model.mc_samples = 0
+        plain = model(images())
+    # The index's descriptor is the dropout-free one...
+    assert torch.allclose(sampled.features, plain.features)
+    # ...but the samples' descriptors differ from each other (the 8 x 3 pass).
+    per_sample = descriptors.sizes
+    assert 24 in per_sample
+    assert not torch.allclose(sampled.positions, plain.positions)
+    assert torch.all(sampled.position_spread > 0)
+
+
+def test_head_only_sampling_leaves_the_descriptor_and_trunk_alone():
+    model = tiny_posenet("head", samples=8)
+    descriptors = Calls(model.head.descriptor)
+    with torch.inference_mode():
+        model(images())
+    assert descriptors.sizes == [3]  # one descriptor per image; only the regressor samples
+
+
+@pytest.mark.parametrize(
+    "variant, once, per_sample",
+    [("kendall", "inception5b", None), ("all", "inception3a", "inception3b")],
+)
+def test_the_trunk_below_the_first_dropout_runs_once_per_query(variant, once, per_sample):
+    model = tiny_posenet(variant, samples=5)
+    stem = Calls(model.trunk.conv1)
+    below = Calls(getattr(model.trunk, once))
+    above = Calls(getattr(model.trunk, per_sample)) if per_sample else None
+    with torch.inference_mode():
+        model(images(3))
+    assert stem.sizes == [3] and below.sizes == [3]
+    if above is not None:
+        # One dropout-free pass for the descriptor, then all 5 samples of 3 images.
+        assert above.sizes == [3, 15]
+
+
+def test_samples_are_batched_within_the_memory_bound(monkeypatch):
+    import relocfw.plugins.posenet as posenet
+
+    monkeypatch.setattr(posenet, "SAMPLED_IMAGES_PER_PASS", 6)
+    model = tiny_posenet("kendall", samples=5)
+    descriptors = Calls(model.head.descriptor)
+    with torch.inference_mode():
+        out = model(images(3))
+    # 2 samples of 3 images per pass: 6, 6, 3 (and the dropout-free 3 first).
+    assert descriptors.sizes == [3, 6, 6, 3]
+    assert out.positions.shape == (3, 3) and np.isfinite(out.position_spread.numpy()).all()
+
+
+@pytest.mark.parametrize("variant, descriptor_sampled", [("head", False), ("kendall", True)])
+def test_training_drops_where_the_variant_says(variant, descriptor_sampled):
+    model = tiny_posenet(variant, samples=0).train()
+    x = images(2)
+    torch.manual_seed(3)
+    first = model(x).features
+    torch.manual_seed(4)
+    second = model(x).features
+    # head drops after the descriptor; kendall also in the trunk's maps below it.
+    assert torch.allclose(first, second) != descriptor_sampled
+
+
+def test_an_unknown_variant_is_refused():
+    with pytest.raises(ConfigError, match="dropout_variant must be one of head, kendall, all"):
+        PoseNet(**TINY, dropout_variant="everywhere")
