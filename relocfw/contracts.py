@@ -108,6 +108,7 @@ def check_backbone(backbone: Backbone) -> None:
     loss.backward()
     assert any(p.grad is not None for p in backbone.parameters()), "no gradient reached weights"
     backbone.eval()
+    check_sampling(backbone, images)
     if backbone.shares_strip:
         # On a square image the one window is the whole image: shared == plain.
         with torch.inference_mode():
@@ -118,3 +119,31 @@ def check_backbone(backbone: Backbone) -> None:
         assert torch.allclose(shared, plain, atol=1e-4, rtol=1e-4), (
             "describe_pooled(average of feature_maps) must equal forward()'s features"
         )
+
+
+def check_sampling(backbone: Backbone, images: torch.Tensor, samples: int = 4) -> None:
+    """A backbone that samples at test time (`mc_samples` in test_time_options) answers
+    with a mean pose, a spread per image, and the dropout-free descriptor (the index
+    must see the same descriptor however many samples are drawn)."""
+    if "mc_samples" not in getattr(backbone, "test_time_options", ()):
+        return
+    configured = backbone.mc_samples
+    try:
+        with torch.inference_mode():
+            backbone.mc_samples = 0
+            plain = backbone(images)
+            backbone.mc_samples = samples
+            sampled = backbone(images)
+    finally:
+        backbone.mc_samples = configured
+    count = len(images)
+    for name in ("position_spread", "orientation_spread_deg"):
+        spread = getattr(sampled, name)
+        assert spread is not None and spread.shape == (count,), f"{name} must be [B] when sampled"
+        assert torch.all(torch.isfinite(spread) & (spread >= 0)), f"{name} must be finite, >= 0"
+    assert torch.allclose(sampled.quaternions.norm(dim=1), torch.ones(count), atol=1e-4), (
+        "the sampled mean quaternion must have unit norm"
+    )
+    assert torch.allclose(sampled.features, plain.features, atol=1e-5), (
+        "sampling must not change the descriptor the index sees (return the dropout-free one)"
+    )

@@ -1,5 +1,7 @@
 """relocfw's own contract checks, run on every built-in (and the example plugin)."""
 
+import dataclasses
+
 import pytest
 
 from relocfw.contracts import check_backbone, check_crop_search, check_similarity_index
@@ -31,9 +33,24 @@ def test_faiss_index(kind):
     check_similarity_index(lambda: FaissIndex(kind=kind, nlist=4, nprobe=4))
 
 
-def test_posenet_backbone():
-    check_backbone(PoseNet(input_size=32, width=0.125, feature_dim=16))
-    check_backbone(PoseNet(input_size=32, width=0.125, feature_dim=16, mc_samples=4))
+@pytest.mark.parametrize("variant", ["head", "kendall", "all"])
+def test_posenet_backbone(variant):
+    tiny = {"input_size": 32, "width": 0.125, "feature_dim": 16, "dropout_variant": variant}
+    check_backbone(PoseNet(**tiny))
+    check_backbone(PoseNet(**tiny, mc_samples=4))
+
+
+def test_a_backbone_whose_sampling_changes_the_descriptor_is_caught():
+    class SampledDescriptor(PoseNet):
+        def forward(self, images):
+            out = super().forward(images)
+            if self.mc_samples and not self.training:
+                return dataclasses.replace(out, features=out.features + 1.0)
+            return out
+
+    backbone = SampledDescriptor(input_size=32, width=0.125, feature_dim=16)
+    with pytest.raises(AssertionError, match="sampling must not change the descriptor"):
+        check_backbone(backbone)
 
 
 def test_efficientnet_backbone():
