@@ -24,6 +24,7 @@ from relocfw.data.frames import Frame
 from relocfw.geometry import orientation_error_deg, position_error
 from relocfw.pipeline import Relocalizer
 from relocfw.progress import Progress
+from relocfw.statistics import spearman
 from relocfw.values import Pose
 
 
@@ -130,19 +131,6 @@ def pick(
         oracle_position=int(np.lexsort((orientation_errors, position_errors))[0]),
         oracle_orientation=int(np.lexsort((position_errors, orientation_errors))[0]),
     )
-
-
-def spearman(x: np.ndarray, y: np.ndarray) -> float:
-    """Spearman rank correlation; NaN where it is undefined (n < 2 or a constant side).
-
-    Infinite errors rank last, as the worst; NaN distances make it NaN.
-    """
-    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
-    if len(x) < 2 or np.isnan(x).any() or np.isnan(y).any():
-        return float("nan")
-    if len(np.unique(x)) < 2 or len(np.unique(y)) < 2:
-        return float("nan")
-    return float(stats.spearmanr(x, y)[0])
 
 
 def signed_rank_p(a: np.ndarray, b: np.ndarray) -> tuple[float, int]:

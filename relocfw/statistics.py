@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.stats import rankdata, wilcoxon
+from scipy.stats import rankdata, spearmanr, wilcoxon
 
 SIGNIFICANCE = 0.05
 BOOTSTRAP_RESAMPLES = 2000
@@ -29,6 +29,19 @@ def spread(values: Sequence[float]) -> dict[str, float | list[float]]:
         "min": float(array.min()),
         "max": float(array.max()),
     }
+
+
+def spearman(x: np.ndarray, y: np.ndarray) -> float:
+    """Spearman rank correlation; NaN where it is undefined (n < 2 or a constant side).
+
+    Infinite errors rank last, as the worst; NaN distances make it NaN.
+    """
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if len(x) < 2 or np.isnan(x).any() or np.isnan(y).any():
+        return float("nan")
+    if len(np.unique(x)) < 2 or len(np.unique(y)) < 2:
+        return float("nan")
+    return float(spearmanr(x, y)[0])
 
 
 def difference(a: np.ndarray, b: np.ndarray) -> np.ndarray:

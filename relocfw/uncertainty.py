@@ -15,7 +15,8 @@ error. Measured here the way the literature does:
 from __future__ import annotations
 
 import numpy as np
-from scipy.stats import spearmanr
+
+from relocfw.statistics import spearman
 
 REJECTION_SHARES = (0.1, 0.2, 0.3)
 
@@ -74,14 +75,6 @@ def rejection_medians(
     return out
 
 
-def rank_correlation(uncertainty: np.ndarray, errors: np.ndarray) -> float:
-    """Spearman's rho of spread with error (NaN when either is constant)."""
-    uncertainty, errors = np.asarray(uncertainty), np.asarray(errors)
-    if len(np.unique(uncertainty)) < 2 or len(np.unique(errors)) < 2:
-        return float("nan")
-    return float(spearmanr(uncertainty, errors).statistic)
-
-
 def uncertainty_quality(
     position_errors: np.ndarray,
     orientation_errors: np.ndarray,
@@ -102,7 +95,7 @@ def uncertainty_quality(
         spread = np.where(np.isnan(spread), np.inf, spread)
         curves = ause(errors, spread)
         quality[kind] = {
-            "spearman_spread_error": rank_correlation(spread, np.asarray(errors)),
+            "spearman_spread_error": spearman(spread, errors),
             "ause": curves["ause"],
             "median_after_rejecting": rejection_medians(errors, spread),
             "sparsification": curves,

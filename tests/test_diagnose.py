@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 from relocfw import Relocalizer
 from relocfw.data.frames import read_images
@@ -16,11 +15,11 @@ from relocfw.geometry import orientation_error_deg, position_error
 from relocfw.json_output import json_ready
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
-from relocfw.plugins.posenet import PoseNet
 from relocfw.plugins.sweep_crop import SweepCrop
 from relocfw.values import Pose
 from tests.conftest import TINY_OVERRIDES
 from tests.test_cli import relocfw
+from tests.test_pipeline import CountingPoseNet
 
 
 def constructed_queries():
@@ -88,19 +87,6 @@ def test_spearman_is_undefined_not_zero_for_a_constant_side():
     assert math.isnan(spearman([1.0, 1.0, 1.0], [0.1, 0.2, 0.3]))
     assert math.isnan(spearman([1.0], [0.1]))
     assert spearman([1.0, 2.0, 3.0], [0.3, 0.2, 0.1]) == pytest.approx(-1.0)
-
-
-class CountingPoseNet(PoseNet):
-    """A tiny PoseNet that records the size of every forward batch."""
-
-    def __init__(self):
-        torch.manual_seed(0)
-        super().__init__(input_size=32, width=0.125, feature_dim=32)
-        self.batches = []
-
-    def forward(self, images):
-        self.batches.append(len(images))
-        return super().forward(images)
 
 
 def test_every_offset_scored_once_on_the_pipelines_windows(tiny_scene):
