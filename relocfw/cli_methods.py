@@ -18,8 +18,9 @@ from relocfw.distributed import World
 from relocfw.errors import ConfigError, RelocfwError
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.options import integer_at_least
-from relocfw.pipeline import Relocalizer, check_retrieval, check_scoring
+from relocfw.pipeline import Relocalizer, check_retrieval, check_sampling, check_scoring
 from relocfw.plugin_discovery import source_of
+from relocfw.sampling import configured_samples
 from relocfw.training import TrainSettings
 
 INTERFACES = {"backbone": Backbone, "index": SimilarityIndex, "crop": CropSearch}
@@ -114,6 +115,8 @@ class Method:
     options: dict[str, dict[str, Any]]
 
     scoring: str
+    crop_samples: int = 0
+    sample_seed: int = 0
 
     def relocalizer(self, device: torch.device, batch_size: int) -> Relocalizer:
         return Relocalizer(
@@ -124,6 +127,8 @@ class Method:
             batch_size,
             self.retrieval_k,
             self.scoring,
+            crop_samples=self.crop_samples,
+            sample_seed=self.sample_seed,
         )
 
 
@@ -135,9 +140,13 @@ def method_label(cfg: DictConfig, choices: Mapping[str, str]) -> str:
         label = f"retrieval of {cfg.retrieval_k} nearest, {choices['crop']} crop"
     if cfg.scoring != "plain":
         label += f", {cfg.scoring} scoring"
+    if int(cfg.get("crop_samples", 0)) > 0:
+        label += f", x{cfg.crop_samples} random crops"
     if choices["backbone"] != "posenet" or int(cfg.backbone.get("mc_samples", 0)) > 0:
         samples = int(cfg.backbone.get("mc_samples", 0))
-        label = f"{choices['backbone']}{f' x{samples} MC' if samples else ''}: {label}"
+        variant = cfg.backbone.get("dropout_variant", "head")
+        sampled = f" x{samples} MC ({variant})" if samples else ""
+        label = f"{choices['backbone']}{sampled}: {label}"
     return label
 
 
@@ -152,6 +161,13 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     """Build and check every plugin before any slow work, so a bad option fails fast."""
     settings = train_settings(cfg)
     retrieval_k = integer_at_least("retrieval_k", cfg.retrieval_k, 0)
+    crop_samples = integer_at_least("crop_samples", cfg.get("crop_samples", 0), 0)
+    if crop_samples > 0 and settings.crop_scale <= 1.0:
+        raise ConfigError(
+            f"crop_samples={crop_samples} draws random windows inside the chosen crop, but "
+            f"train.crop_scale={settings.crop_scale} makes the window fill the crop: every "
+            "sample would be the same window (train with train.crop_scale > 1)"
+        )
     # Seeded here, in the CLI, so the same command initialises the same network.
     torch.manual_seed(int(cfg.seed))
     backbone = build(cfg, "backbone", choices["backbone"])
@@ -159,6 +175,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     crop = build(cfg, "crop", choices["crop"])
     check_retrieval(index, retrieval_k)
     check_scoring(str(cfg.scoring), backbone)
+    check_sampling(retrieval_k, crop_samples, configured_samples(backbone))
     check_pretrained(cfg, choices, backbone)
     options = {
         group: {
@@ -171,7 +188,10 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     identity = {
         "dataset": dataset_settings(cfg),
         "backbone": {
-            k: v for k, v in options["backbone"].items() if k not in backbone.test_time_options
+            k: v
+            for k, v in options["backbone"].items()
+            if k not in backbone.test_time_options
+            and not (k in backbone.key_defaults and backbone.key_defaults[k] == v)
         },
     }
     return Method(
@@ -184,6 +204,8 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
         identity,
         options,
         str(cfg.scoring),
+        crop_samples,
+        int(cfg.seed),
     )
 
 

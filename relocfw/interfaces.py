@@ -46,6 +46,10 @@ class Backbone(torch.nn.Module, ABC):
     # Constructor options that only change inference (e.g. Monte Carlo samples): they
     # are left out of the checkpoint key, so such variants share one trained model.
     test_time_options: tuple[str, ...] = ()
+    # Options left out of the checkpoint key while they hold these values: an option
+    # added after models were trained, whose default is what those models are, keeps
+    # their key (and their cached checkpoints).
+    key_defaults: dict[str, object] = {}
     # Options replaced when a saved model is rebuilt: its state already holds the
     # weights, so e.g. an ImageNet weights file is not needed (or read) again.
     rebuild_overrides: dict[str, object] = {}

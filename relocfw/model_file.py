@@ -55,6 +55,8 @@ def save_model(
         "kind": MODEL_KIND,
         "format": MODEL_FORMAT,
         "retrieval_k": relocalizer.retrieval_k,
+        "crop_samples": relocalizer.crop_samples,
+        "sample_seed": relocalizer.sample_seed,
         "metadata": metadata,
     }
     for name, part in parts.items():
@@ -103,6 +105,8 @@ def load_model(
         batch_size,
         payload["retrieval_k"],
         scoring,
+        crop_samples=payload.get("crop_samples", 0),
+        sample_seed=payload.get("sample_seed", 0),
     )
     if "map_poses" in payload:
         relocalizer.map_poses = [Pose(row[:3], row[3:]) for row in payload["map_poses"].numpy()]

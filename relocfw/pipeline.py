@@ -25,6 +25,14 @@ from relocfw.interfaces import (
     crop_side_and_span,
 )
 from relocfw.progress import Progress
+from relocfw.sampling import (
+    combine_samples,
+    configured_samples,
+    monte_carlo,
+    query_stream,
+    random_windows,
+    seeded_torch,
+)
 from relocfw.values import Crop, Localization, Pose
 from relocfw.window_pooling import StripMaps
 
@@ -107,6 +115,17 @@ def check_retrieval(index: SimilarityIndex, retrieval_k: int) -> None:
         )
 
 
+def check_sampling(retrieval_k: int, crop_samples: int, mc_samples: int) -> None:
+    """Raise ConfigError for sampling options that cannot mean anything."""
+    if crop_samples < 0:
+        raise ConfigError(f"crop_samples must be >= 0, got {crop_samples}")
+    if retrieval_k > 0 and (crop_samples > 0 or mc_samples > 0):
+        raise ConfigError(
+            "retrieval_k > 0 answers with map images' poses, but crop_samples / "
+            "backbone.mc_samples sample the network's pose: use one or the other"
+        )
+
+
 def check_scoring(scoring: str, backbone: Backbone) -> None:
     """Raise ConfigError unless `backbone` can score crops the way `scoring` names."""
     if scoring not in SCORINGS:
@@ -140,6 +159,14 @@ class Relocalizer:
             (relocfw.window_pooling); the chosen crop then goes through the plain path
             once, so the pose is the plain pose of that crop. Needs a backbone with
             `feature_maps` and `describe_pooled`.
+        crop_samples: > 0 answers with the mean pose of this many random windows of
+            the chosen crop (test-time crop sampling, relocfw.sampling); with the
+            backbone's Monte Carlo dropout on, each window gets its own mask. Needs a
+            model trained with crop_scale > 1 (else every window is the same).
+        sample_seed: seeds the samples, mixed with each query image's fingerprint.
+
+    Candidate crops and the map are always scored by the dropout-free network; only
+    the chosen crop is sampled (backbone.mc_samples, crop_samples), once.
     """
 
     def __init__(
@@ -151,6 +178,8 @@ class Relocalizer:
         batch_size: int = 64,
         retrieval_k: int = 0,
         scoring: str = "plain",
+        crop_samples: int = 0,
+        sample_seed: int = 0,
     ) -> None:
         check_scoring(scoring, backbone)
         self.scoring = scoring
@@ -165,6 +194,9 @@ class Relocalizer:
         self.batch_size = int(batch_size)
         self.retrieval_k = int(retrieval_k)
         check_retrieval(index, self.retrieval_k)
+        self.crop_samples = int(crop_samples)
+        self.sample_seed = int(sample_seed)
+        check_sampling(self.retrieval_k, self.crop_samples, configured_samples(backbone))
         self._threadpools: ThreadpoolController | None = None  # found on first query
         self._cells: int | None = None  # see _window_cells
         self.map_poses: list[Pose] = []
@@ -191,8 +223,16 @@ class Relocalizer:
         return load_model(Path(path), device, batch_size, scoring)
 
     @torch.inference_mode()
-    def _forward(self, inputs: torch.Tensor) -> NetworkAnswers:
-        """Network answers for uint8 inputs, in batches of at most `batch_size`."""
+    def _forward(self, inputs: torch.Tensor, samples: int = 0) -> NetworkAnswers:
+        """Network answers for uint8 inputs, in batches of at most `batch_size`.
+
+        `samples` Monte Carlo dropout masks per input; 0 (scoring, the map) runs the
+        dropout-free network whatever the backbone is configured to sample.
+        """
+        with monte_carlo(self.backbone, samples):
+            return self._forward_batches(inputs)
+
+    def _forward_batches(self, inputs: torch.Tensor) -> NetworkAnswers:
         parts = []
         for start in range(0, len(inputs), self.batch_size):
             batch = to_network_input(inputs[start : start + self.batch_size].to(self.device))
@@ -358,6 +398,9 @@ class Relocalizer:
         corner = strip.window(chosen)
         evaluate([corner])
         best_distance, answer = results[corner]
+        sampled_passes = 0
+        if self.crop_samples > 0 or configured_samples(self.backbone) > 0:
+            answer, sampled_passes = self._sampled_answer(strip, chosen, answer, query.query_seed)
         pose = self._answer_pose(answer)
         # Cost in whole-network passes: each plain window is one; the strip pass costs
         # its area over a window's (the trunk dominates the network's work).
@@ -371,8 +414,41 @@ class Relocalizer:
             seconds=time.perf_counter() - start,
             position_spread=float(answer.position_spread),
             orientation_spread_deg=float(answer.orientation_spread_deg),
-            network_passes=len(results) + (0.0 if strip_maps is None else strip_passes),
+            network_passes=len(results)
+            + sampled_passes
+            + (0.0 if strip_maps is None else strip_passes),
         )
+
+    def _sampled_answer(
+        self, strip: Strip, crop: Crop, plain: NetworkAnswers, fingerprint: int
+    ) -> tuple[NetworkAnswers, int]:
+        """The chosen crop's answer from its samples, and the extra network passes.
+
+        `plain` is the crop's dropout-free answer: its descriptor, the one the index
+        saw, stays the answer's descriptor.
+        """
+        stream = query_stream(self.sample_seed, fingerprint)
+        masks = configured_samples(self.backbone)
+        with seeded_torch(int(stream.generate_state(1)[0]), self.device):
+            if self.crop_samples == 0:
+                window = strip.cut(strip.window(crop))[None]
+                sampled = self._forward(window, masks)
+                return NetworkAnswers(*(column[0] for column in sampled)), 1
+            corners = random_windows(strip, crop, self.crop_samples, np.random.default_rng(stream))
+            windows = torch.stack([strip.cut(c) for c in corners])
+            # With dropout on, one mask per window: every sample is a new crop and mask.
+            samples = self._forward(windows, 1 if masks > 0 else 0)
+        position, quaternion, position_spread, orientation_spread = combine_samples(
+            samples.positions, samples.quaternions
+        )
+        answer = NetworkAnswers(
+            position,
+            quaternion,
+            plain.features,
+            np.float64(position_spread),
+            np.float64(orientation_spread),
+        )
+        return answer, len(corners)
 
     @torch.inference_mode()
     def score_windows(self, image: np.ndarray) -> WindowScores:

@@ -43,6 +43,30 @@ def mean_quaternions(samples: torch.Tensor) -> torch.Tensor:
     return torch.where(mean[:, :1] < 0, -mean, mean)
 
 
+SAMPLED_IMAGES_PER_PASS = 256
+# Where a backbone's dropout can sit (backbone.dropout_variant); see plugins/posenet.py.
+DROPOUT_VARIANTS = ("head", "kendall", "all")  # see PoseHead.images_per_pass
+
+
+def sample_statistics(
+    positions: torch.Tensor, quaternions: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """[S, B, 3] positions and [S, B, 4] unit quaternions of S samples of B images ->
+    per image the mean position, the mean rotation, the position spread (m: sqrt of
+    the trace of the covariance, one length) and the orientation spread (deg: mean
+    angle from the mean rotation).
+
+    Shared by Monte Carlo dropout and test-time crop sampling, so both report the
+    same quantities.
+    """
+    mean_position = positions.mean(0)
+    mean_quaternion = mean_quaternions(quaternions)
+    position_spread = (positions - mean_position).pow(2).sum(-1).mean(0).sqrt()
+    dots = (quaternions * mean_quaternion).sum(-1).abs().clamp(max=1.0)
+    angular_spread = torch.rad2deg(2 * torch.acos(dots)).mean(0)
+    return mean_position, mean_quaternion, position_spread, angular_spread
+
+
 class PoseHead(nn.Module):
     """Pooled trunk features -> descriptor -> dropout -> pose.
 
@@ -57,6 +81,8 @@ class PoseHead(nn.Module):
         self.descriptor = nn.Linear(in_features, feature_dim)
         self.dropout_rate = dropout
         self.regressor = PoseRegressor(feature_dim)
+        # Most sample x image inputs one pass of the sampled layers takes (memory).
+        self.images_per_pass = SAMPLED_IMAGES_PER_PASS
 
     def describe(self, pooled: torch.Tensor) -> torch.Tensor:
         """[n, C] pooled trunk features -> [n, D] descriptors (no dropout, no pose)."""
@@ -76,6 +102,32 @@ class PoseHead(nn.Module):
         # All masks in one batch: [S * B, D].
         repeated = features.unsqueeze(0).expand(mc_samples, -1, -1).reshape(-1, features.shape[1])
         return self.sampled(repeated, features, to_world, mc_samples)
+
+    def sampled_above(
+        self,
+        below: torch.Tensor,
+        above: Callable[[torch.Tensor], torch.Tensor],
+        clean: torch.Tensor,
+        to_world: Callable[[torch.Tensor], torch.Tensor],
+        mc_samples: int,
+    ) -> PoseOutput:
+        """Monte Carlo answers when dropout also sits below the descriptor.
+
+        Args:
+            below: [B, ...] what the layers under the first dropout gave, computed
+                once per image: only `above` runs once per sample.
+            above: the layers from the first dropout up to the pooled [n, C] trunk
+                features, dropout on.
+            clean: [B, C] the same pooled features with no dropout: the descriptor
+                the index sees.
+        """
+        per_pass = max(1, self.images_per_pass // len(below))
+        descriptors = []
+        for start in range(0, mc_samples, per_pass):
+            count = min(per_pass, mc_samples - start)
+            repeated = below.repeat(count, *([1] * (below.dim() - 1)))  # sample-major
+            descriptors.append(self.describe(above(repeated)))
+        return self.sampled(torch.cat(descriptors), self.describe(clean), to_world, mc_samples)
 
     def sampled(
         self,
@@ -102,12 +154,9 @@ class PoseHead(nn.Module):
         positions, quaternions = self.regressor(dropped)
         positions = to_world(positions).view(mc_samples, batch, 3)
         quaternions = quaternions.view(mc_samples, batch, 4)
-        mean_position = positions.mean(0)
-        mean_quaternion = mean_quaternions(quaternions)
-        # sqrt of the trace of the position covariance: one length in metres.
-        position_spread = (positions - mean_position).pow(2).sum(-1).mean(0).sqrt()
-        dots = (quaternions * mean_quaternion).sum(-1).abs().clamp(max=1.0)
-        angular_spread = torch.rad2deg(2 * torch.acos(dots)).mean(0)
+        mean_position, mean_quaternion, position_spread, angular_spread = sample_statistics(
+            positions, quaternions
+        )
         return PoseOutput(
             mean_position,
             mean_quaternion,

@@ -121,9 +121,11 @@ def test_compare_of_the_dropout_variants(tmp_path, cache):
     summary = json.loads((run_dir / "comparison.json").read_text())
     uncertainty = summary["scenes"]["synthetic"]["uncertainty"]
     assert sorted(uncertainty) == [
-        "Bayesian PoseNet",
         "Bayesian PoseNet (all)",
+        "Bayesian PoseNet (head)",
         "Bayesian PoseNet (kendall)",
+        "Crop sampling",
+        "Crop sampling + MC (kendall)",
         "Ours + MC dropout (kendall)",
     ]
     for quality in (u["quality"] for u in uncertainty.values()):

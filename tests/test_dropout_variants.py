@@ -70,16 +70,14 @@ def test_the_trunk_below_the_first_dropout_runs_once_per_query(variant, once, pe
         assert above.sizes == [3, 15]
 
 
-def test_samples_are_batched_within_the_memory_bound(monkeypatch):
-    import relocfw.plugins.posenet as posenet
-
-    monkeypatch.setattr(posenet, "SAMPLED_IMAGES_PER_PASS", 6)
+def test_samples_are_batched_within_the_memory_bound():
     model = tiny_posenet("kendall", samples=5)
+    model.head.images_per_pass = 6
     descriptors = Calls(model.head.descriptor)
     with torch.inference_mode():
         out = model(images(3))
-    # 2 samples of 3 images per pass: 6, 6, 3 (and the dropout-free 3 first).
-    assert descriptors.sizes == [3, 6, 6, 3]
+    # 2 samples of 3 images per pass: 6, 6, 3; then the dropout-free 3.
+    assert descriptors.sizes == [6, 6, 3, 3]
     assert out.positions.shape == (3, 3) and np.isfinite(out.position_spread.numpy()).all()
 
 

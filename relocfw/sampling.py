@@ -1,0 +1,103 @@
+"""Test-time sampling of the chosen crop: Monte Carlo dropout and random crops.
+
+Bayesian PoseNet (Kendall & Cipolla, ICRA 2016) answers with the mean of many
+stochastic passes and reads their spread as the model's doubt. The pipeline scores
+candidate crops with the dropout-free network (the index only ever sees the
+dropout-free descriptor, so sampling cannot change which crop a search picks) and
+samples only the crop it chose. Two kinds of sample, alone or together:
+
+- Monte Carlo dropout: the backbone's `mc_samples` masks of one window.
+- Random crops (`crop_samples`): windows drawn the way training drew them, an
+  input-sized window anywhere inside the chosen crop's scaled square. With dropout on
+  as well, each window gets one mask of its own, as in the authors' evaluation.
+
+Every query's samples are seeded from the run's seed and the image's fingerprint, so
+a query's answer does not depend on which queries ran before it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+
+import numpy as np
+import torch
+
+from relocfw.imaging import Strip
+from relocfw.interfaces import Backbone
+from relocfw.pose_head import sample_statistics
+from relocfw.values import Crop
+
+
+def configured_samples(backbone: Backbone) -> int:
+    """The backbone's Monte Carlo dropout samples (0 when it does not sample)."""
+    if "mc_samples" not in backbone.test_time_options:
+        return 0
+    return int(backbone.mc_samples)
+
+
+@contextmanager
+def monte_carlo(backbone: Backbone, samples: int) -> Iterator[None]:
+    """Run `backbone` with `samples` dropout masks per image (0: dropout-free)."""
+    if "mc_samples" not in backbone.test_time_options:
+        yield
+        return
+    configured = backbone.mc_samples
+    backbone.mc_samples = samples
+    try:
+        yield
+    finally:
+        backbone.mc_samples = configured
+
+
+@contextmanager
+def seeded_torch(seed: int, device: torch.device) -> Iterator[None]:
+    """torch's random streams seeded with `seed` inside, restored outside.
+
+    Dropout draws from torch's default generator; forking it keeps the caller's
+    streams (a training run, the next query) untouched.
+    """
+    devices = list(range(torch.cuda.device_count())) if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(seed)
+        yield
+
+
+def query_stream(seed: int, fingerprint: int) -> np.random.SeedSequence:
+    """One query's seed material: the run's seed mixed with the image's fingerprint."""
+    return np.random.SeedSequence([int(seed), int(fingerprint)])
+
+
+def random_windows(
+    strip: Strip, crop: Crop, count: int, rng: np.random.Generator
+) -> list[tuple[int, int]]:
+    """`count` strip corners of input-sized windows drawn uniformly inside `crop`'s
+    scaled square: training's random crops (relocfw.training), around this crop.
+
+    With crop_scale 1 the window fills the square and every draw is the same window.
+    """
+    top = round(crop.y * strip.scale)
+    left = round(crop.x * strip.scale)
+    span = strip.side - strip.input_size
+    limit_y = strip.pixels.shape[1] - strip.input_size
+    limit_x = strip.pixels.shape[2] - strip.input_size
+    offsets = rng.integers(0, span + 1, size=(count, 2))
+    return [(min(top + int(dy), limit_y), min(left + int(dx), limit_x)) for dy, dx in offsets]
+
+
+def combine_samples(
+    positions: np.ndarray, quaternions: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """[S, 3] positions and [S, 4] quaternions of one query's samples -> mean position,
+    mean rotation, position spread (m) and orientation spread (deg), as Monte Carlo
+    dropout reports them (relocfw.pose_head.sample_statistics)."""
+    mean_position, mean_quaternion, position_spread, angular_spread = sample_statistics(
+        torch.as_tensor(positions, dtype=torch.float64)[:, None],
+        torch.as_tensor(quaternions, dtype=torch.float64)[:, None],
+    )
+    return (
+        mean_position[0].numpy(),
+        mean_quaternion[0].numpy(),
+        float(position_spread[0]),
+        float(angular_spread[0]),
+    )
