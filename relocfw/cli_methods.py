@@ -18,7 +18,13 @@ from relocfw.distributed import World
 from relocfw.errors import ConfigError, RelocfwError
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.options import integer_at_least
-from relocfw.pipeline import Relocalizer, check_retrieval, check_sampling, check_scoring
+from relocfw.pipeline import (
+    Relocalizer,
+    check_rerank,
+    check_retrieval,
+    check_sampling,
+    check_scoring,
+)
 from relocfw.plugin_discovery import source_of
 from relocfw.sampling import configured_samples
 from relocfw.training import TrainSettings
@@ -117,6 +123,7 @@ class Method:
     scoring: str
     crop_samples: int = 0
     sample_seed: int = 0
+    rerank: int = 1
 
     def relocalizer(self, device: torch.device, batch_size: int) -> Relocalizer:
         return Relocalizer(
@@ -129,6 +136,7 @@ class Method:
             self.scoring,
             crop_samples=self.crop_samples,
             sample_seed=self.sample_seed,
+            rerank=self.rerank,
         )
 
 
@@ -140,6 +148,8 @@ def method_label(cfg: DictConfig, choices: Mapping[str, str]) -> str:
         label = f"retrieval of {cfg.retrieval_k} nearest, {choices['crop']} crop"
     if cfg.scoring != "plain":
         label += f", {cfg.scoring} scoring"
+    if int(cfg.get("rerank", 1)) > 1:
+        label += f", best {cfg.rerank} re-scored"
     if int(cfg.get("crop_samples", 0)) > 0:
         label += f", x{cfg.crop_samples} random crops"
     if choices["backbone"] != "posenet" or int(cfg.backbone.get("mc_samples", 0)) > 0:
@@ -175,6 +185,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     crop = build(cfg, "crop", choices["crop"])
     check_retrieval(index, retrieval_k)
     check_scoring(str(cfg.scoring), backbone)
+    rerank = check_rerank(integer_at_least("rerank", cfg.get("rerank", 1), 1), str(cfg.scoring))
     check_sampling(retrieval_k, crop_samples, configured_samples(backbone))
     check_pretrained(cfg, choices, backbone)
     options = {
@@ -206,6 +217,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
         str(cfg.scoring),
         crop_samples,
         int(cfg.seed),
+        rerank,
     )
 
 

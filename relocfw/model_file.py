@@ -57,6 +57,7 @@ def save_model(
         "retrieval_k": relocalizer.retrieval_k,
         "crop_samples": relocalizer.crop_samples,
         "sample_seed": relocalizer.sample_seed,
+        "rerank": relocalizer.rerank,
         "metadata": metadata,
     }
     for name, part in parts.items():
@@ -107,6 +108,7 @@ def load_model(
         scoring,
         crop_samples=payload.get("crop_samples", 0),
         sample_seed=payload.get("sample_seed", 0),
+        rerank=payload.get("rerank", 1) if scoring == "shared" else 1,
     )
     if "map_poses" in payload:
         relocalizer.map_poses = [Pose(row[:3], row[3:]) for row in payload["map_poses"].numpy()]

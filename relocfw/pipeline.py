@@ -126,6 +126,18 @@ def check_sampling(retrieval_k: int, crop_samples: int, mc_samples: int) -> None
         )
 
 
+def check_rerank(rerank: int, scoring: str) -> int:
+    """`rerank` as an int, or ConfigError when it cannot apply."""
+    if int(rerank) != rerank or rerank < 1:
+        raise ConfigError(f"rerank must be an integer >= 1, got {rerank!r}")
+    if rerank > 1 and scoring != "shared":
+        raise ConfigError(
+            f"rerank={rerank} re-scores the best shared-scoring candidates plainly; "
+            f"with scoring={scoring} every candidate is already plain (use scoring=shared)"
+        )
+    return int(rerank)
+
+
 def check_scoring(scoring: str, backbone: Backbone) -> None:
     """Raise ConfigError unless `backbone` can score crops the way `scoring` names."""
     if scoring not in SCORINGS:
@@ -159,6 +171,10 @@ class Relocalizer:
             (relocfw.window_pooling); the chosen crop then goes through the plain path
             once, so the pose is the plain pose of that crop. Needs a backbone with
             `feature_maps` and `describe_pooled`.
+        rerank: with scoring="shared", the `rerank` windows with the smallest shared
+            distances (the search's choice among them) go through the plain network
+            in one batch and the smallest plain distance chooses: the shared path
+            only ranks. 1: the search's choice as it is.
         crop_samples: > 0 answers with the mean pose of this many random windows of
             the chosen crop (test-time crop sampling, relocfw.sampling); with the
             backbone's Monte Carlo dropout on, each window gets its own mask. Needs a
@@ -180,8 +196,10 @@ class Relocalizer:
         scoring: str = "plain",
         crop_samples: int = 0,
         sample_seed: int = 0,
+        rerank: int = 1,
     ) -> None:
         check_scoring(scoring, backbone)
+        self.rerank = check_rerank(rerank, scoring)
         self.scoring = scoring
         self.device = torch.device(device)
         self.backbone = backbone.to(self.device).eval()
@@ -385,8 +403,12 @@ class Relocalizer:
             distances = self._map_distance(self._shared_features(strip_maps, new))
             shared.update(zip(new, (float(d) for d in distances), strict=True))
 
+        crop_of: dict[tuple[int, int], Crop] = {}  # a crop for every window scored
+
         def distance(crops: Sequence[Crop]) -> np.ndarray:
             corners = [strip.window(c) for c in crops]
+            for corner, crop in zip(corners, crops, strict=True):
+                crop_of.setdefault(corner, crop)
             if self.scoring == "shared":
                 score_shared(corners)
                 return np.array([shared[c] for c in corners])
@@ -396,6 +418,16 @@ class Relocalizer:
         query = QueryDistance(distance, image)
         chosen = self.crop.search(strip.width, strip.height, query)
         corner = strip.window(chosen)
+        if self.rerank > 1 and shared:
+            # The shared distances only rank: the best `rerank` windows go through the
+            # plain network in one batch and the plain distance chooses among them.
+            # The search's own choice is always among them.
+            ranked = sorted(shared, key=shared.__getitem__)
+            candidates = list(dict.fromkeys([corner, *ranked]))[: self.rerank]
+            evaluate(candidates)
+            best = min(candidates, key=lambda c: results[c][0])
+            if best != corner:
+                corner, chosen = best, crop_of[best]
         evaluate([corner])
         best_distance, answer = results[corner]
         sampled_passes = 0

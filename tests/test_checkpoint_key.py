@@ -12,7 +12,7 @@ import torch
 from hydra import compose, initialize_config_module
 
 from relocfw import jobs
-from relocfw.checkpoints import load_checkpoint
+from relocfw.checkpoints import load_checkpoint, settings_key
 from relocfw.cli_methods import build_method
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
@@ -127,3 +127,19 @@ def test_one_turned_training_pose_trains_a_new_model(first, train_split, cache):
     turned[2] = replace(turned[2], pose=type(pose)(pose.position, product))
     checkpoint, reused = train(method_of(), turned, images, cache)
     assert checkpoint != first and not reused
+
+
+def test_an_option_at_its_key_default_keeps_older_models_keys():
+    pytest.importorskip("efficientnet_lite_pytorch", reason="relocfw[efficientnet] not installed")
+    base = ["backbone=efficientnet_lite0", "backbone.pretrained=false", "backbone.input_size=32"]
+
+    def identity(*overrides: str) -> dict:
+        with initialize_config_module(config_module="relocfw.conf", version_base="1.3"):
+            cfg = compose("config", overrides=[*base, *overrides], return_hydra_config=True)
+        return build_method(cfg, cfg.hydra.runtime.choices).identity["backbone"]
+
+    head, kendall = identity(), identity("backbone.dropout_variant=kendall")
+    # dropout_variant=head is what every EfficientNet model before it was: same key.
+    assert "dropout_variant" not in head
+    assert kendall["dropout_variant"] == "kendall"
+    assert settings_key(head) != settings_key(kendall)

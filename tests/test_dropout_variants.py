@@ -96,3 +96,52 @@ def test_training_drops_where_the_variant_says(variant, descriptor_sampled):
 def test_an_unknown_variant_is_refused():
     with pytest.raises(ConfigError, match="dropout_variant must be one of head, kendall, all"):
         PoseNet(**TINY, dropout_variant="everywhere")
+
+
+def tiny_efficientnet(variant: str, samples: int):
+    lite = pytest.importorskip(
+        "relocfw.plugins.efficientnet_lite", reason="relocfw[efficientnet] not installed"
+    )
+    pytest.importorskip("efficientnet_lite_pytorch", reason="relocfw[efficientnet] not installed")
+    torch.manual_seed(0)
+    model = lite.EfficientNetLite0(
+        input_size=32, feature_dim=16, pretrained=False, mc_samples=samples, dropout_variant=variant
+    )
+    return model.eval()
+
+
+@pytest.mark.parametrize("variant", ["kendall", "all"])
+def test_efficientnet_variants_sample_below_the_descriptor(variant):
+    model = tiny_efficientnet(variant, samples=6)
+    stem = Calls(model.trunk._conv_stem)
+    second_block = Calls(model.trunk._blocks[1])
+    head_conv = Calls(model.trunk._conv_head)
+    with torch.inference_mode():
+        sampled = model(images(3))
+        model.mc_samples = 0
+        plain = model(images(3))
+    assert torch.allclose(sampled.features, plain.features)
+    assert not torch.allclose(sampled.positions, plain.positions)
+    assert torch.all(sampled.position_spread > 0)
+    # The stem runs once per image in either pass; above the first dropout, all
+    # samples run batched: kendall samples only after the head convolution.
+    assert stem.sizes == [3, 3]
+    if variant == "all":
+        # The dropout-free pass for the descriptor, the 6 x 3 samples, the plain run.
+        assert second_block.sizes == [3, 18, 3] and head_conv.sizes == [3, 18, 3]
+    else:
+        assert second_block.sizes == [3, 3] and head_conv.sizes == [3, 3]
+
+
+def test_efficientnet_head_variant_keeps_the_models_trained_before_variants_existed():
+    model = tiny_efficientnet("head", samples=0)
+    assert model.key_defaults == {"dropout_variant": "head"}
+    model.train()
+    x = images(2)
+    # Stochastic depth (the package's own) aside, head drops only after the descriptor.
+    model.trunk._global_params = model.trunk._global_params._replace(drop_connect_rate=0.0)
+    torch.manual_seed(3)
+    first = model(x).features
+    torch.manual_seed(4)
+    second = model(x).features
+    assert torch.allclose(first, second)

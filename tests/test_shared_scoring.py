@@ -11,6 +11,7 @@ from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.sweep_crop import SweepCrop
 from relocfw.values import PoseOutput
 from relocfw.window_pooling import StripMaps, coverage_weights
 
@@ -154,3 +155,50 @@ def test_shared_ga_with_a_crop_scale_answers_with_the_plain_pose_of_its_crop(sce
     assert np.allclose(answer.pose.position, exact.positions[0], atol=1e-6)
     assert np.allclose(answer.pose.quaternion, exact.quaternions[0], atol=1e-6)
     assert shared._window_cells() == 1  # a 32-pixel input gives 1 x 1 maps
+
+
+def fitted_with(scoring: str, crop, scene, **options) -> Relocalizer:
+    """Fitted with the same backbone weights as `fitted` (tiny_posenet is seeded)."""
+    relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), crop, scoring=scoring, **options)
+    relocalizer.fit(scene[0])
+    return relocalizer
+
+
+def test_re_scoring_every_window_makes_the_shared_sweep_the_plain_sweep(scene):
+    plain = fitted_with("plain", SweepCrop(), scene)
+    everything = fitted_with("shared", SweepCrop(), scene, rerank=1000)
+    once = fitted_with("shared", SweepCrop(), scene, rerank=1)
+    moved = 0
+    for image in scene[1]:
+        exact, reranked = plain.localize(image), everything.localize(image)
+        strip = Strip(image, 32)
+        assert strip.window(reranked.crop) == strip.window(exact.crop)
+        assert reranked.distance == pytest.approx(exact.distance)
+        assert np.allclose(reranked.pose.position, exact.pose.position)
+        moved += strip.window(once.localize(image).crop) != strip.window(exact.crop)
+    # Without re-scoring, the shared ranking alone picks other windows on some images:
+    # the test would pass vacuously if the two rankings agreed everywhere.
+    assert moved > 0
+
+
+def test_re_scoring_runs_the_best_shared_windows_in_one_plain_batch(scene):
+    backbone = tiny_posenet()
+    relocalizer = Relocalizer(
+        backbone, KMeansIndex(k=4), GeneticCropSearch(seed=0), scoring="shared", rerank=3
+    )
+    relocalizer.fit(scene[0])
+    answer = relocalizer.localize(scene[1][0])
+    # The strip pass, then 3 plain windows together; the chosen one is among them.
+    assert answer.network_passes == pytest.approx(3 + 43 * 32 / 32**2)
+
+
+@pytest.mark.parametrize(
+    "scoring, rerank, message",
+    [
+        ("plain", 2, "with scoring=plain every candidate is already plain"),
+        ("shared", 0, "rerank must be an integer >= 1"),
+    ],
+)
+def test_impossible_rerank_options_are_refused(scoring, rerank, message):
+    with pytest.raises(ConfigError, match=message):
+        Relocalizer(tiny_posenet(), KMeansIndex(k=4), CentreCrop(), scoring=scoring, rerank=rerank)
