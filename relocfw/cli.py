@@ -29,7 +29,7 @@ from relocfw.hydra_plugins import options_help
 from relocfw.localize_job import find_images, localize_images
 from relocfw.model_file import save_model
 from relocfw.options import integer_at_least
-from relocfw.pipeline import Relocalizer
+from relocfw.pipeline import Relocalizer, check_rerank
 from relocfw.plugin_discovery import conflicts, discover_options
 from relocfw.torchrun import join_torchrun, leave_torchrun
 
@@ -52,6 +52,9 @@ def run_localize(cfg: DictConfig, device: torch.device) -> None:
     relocalizer = Relocalizer.load(
         Path(cfg.model), device, int(cfg.query_batch_size), str(cfg.scoring)
     )
+    relocalizer.queries_at_once = integer_at_least("queries_at_once", cfg.queries_at_once, 1)
+    if int(cfg.rerank) > 1:  # the command line's, over what the model file kept
+        relocalizer.rerank = check_rerank(int(cfg.rerank), relocalizer.scoring)
     images = find_images(str(cfg.images or ""))
     localize_images(relocalizer, images, Path(HydraConfig.get().runtime.output_dir), cfg.quiet)
 

@@ -124,6 +124,7 @@ class Method:
     crop_samples: int = 0
     sample_seed: int = 0
     rerank: int = 1
+    queries_at_once: int = 1
 
     def relocalizer(self, device: torch.device, batch_size: int) -> Relocalizer:
         return Relocalizer(
@@ -137,6 +138,7 @@ class Method:
             crop_samples=self.crop_samples,
             sample_seed=self.sample_seed,
             rerank=self.rerank,
+            queries_at_once=self.queries_at_once,
         )
 
 
@@ -218,6 +220,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
         crop_samples,
         int(cfg.seed),
         rerank,
+        integer_at_least("queries_at_once", cfg.get("queries_at_once", 1), 1),
     )
 
 

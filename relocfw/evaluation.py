@@ -72,9 +72,15 @@ def evaluate(
         relocalizer.localize(images[0])
     progress = Progress(len(frames), f"relocalizing ({method})", quiet=quiet)
     answers = []
-    for image in images:
-        answers.append(relocalizer.localize(image))
-        progress.advance()
+    group = relocalizer.queries_at_once
+    for start in range(0, len(images), group):
+        # Groups of queries share forward passes (Relocalizer.localize_many); one
+        # query at a time when queries_at_once is 1, its latency then its own.
+        if group == 1:
+            answers.append(relocalizer.localize(images[start]))
+        else:
+            answers += relocalizer.localize_many(images[start : start + group], group)
+        progress.advance(min(group, len(images) - start))
     progress.close()
     return MethodResult(method, tuple(frames), tuple(answers))
 

@@ -54,9 +54,11 @@ def localize_images(
     """Localize every image; write poses.txt (TUM format) and localization.csv."""
     progress = Progress(len(images), "localizing", quiet=quiet)
     answers = []
-    for path in images:
-        answers.append(relocalizer.localize(read_rgb(path)))
-        progress.advance()
+    group = relocalizer.queries_at_once  # images read a group at a time: memory stays flat
+    for start in range(0, len(images), group):
+        pixels = [read_rgb(path) for path in images[start : start + group]]
+        answers += relocalizer.localize_many(pixels, group)
+        progress.advance(len(pixels))
     progress.close()
     tum_lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world)"]
     table = io.StringIO()

@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import cached_property
+from functools import partial
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -15,16 +15,18 @@ from threadpoolctl import ThreadpoolController
 
 from relocfw.errors import ConfigError, DataError
 from relocfw.geometry import mean_quaternion
-from relocfw.imaging import Strip, image_fingerprint, to_network_input
+from relocfw.imaging import Strip, to_network_input
 from relocfw.interfaces import (
     Backbone,
-    CropDistance,
     CropSearch,
     SimilarityIndex,
     crop_at,
     crop_side_and_span,
 )
+from relocfw.lockstep import Lockstep
+from relocfw.network_answers import NetworkAnswers, as_numpy
 from relocfw.progress import Progress
+from relocfw.query_run import QueryRun
 from relocfw.sampling import (
     combine_samples,
     configured_samples,
@@ -37,16 +39,6 @@ from relocfw.values import Crop, Localization, Pose
 from relocfw.window_pooling import StripMaps
 
 SCORINGS = ("plain", "shared")
-
-
-class NetworkAnswers(NamedTuple):
-    """The backbone's outputs for a batch of windows, as float64 numpy arrays."""
-
-    positions: np.ndarray  # [n, 3]
-    quaternions: np.ndarray  # [n, 4]
-    features: np.ndarray  # [n, D]
-    position_spread: np.ndarray  # [n], NaN unless the backbone samples
-    orientation_spread_deg: np.ndarray  # [n]
 
 
 @dataclass(frozen=True)
@@ -77,33 +69,6 @@ class WindowScores:
         return np.column_stack(
             [self.corners[:, 1] / self.scale, self.corners[:, 0] / self.scale, side]
         )
-
-
-class QueryDistance:
-    """The CropDistance a search gets: scores crops and carries the query's seed.
-
-    `query_seed` (the image's fingerprint) lets a randomised search give every query
-    its own stream (see relocfw.interfaces.query_seed). It is computed only when a
-    search reads it: hashing a full-resolution image costs 1-7 ms, which searches
-    that draw no random numbers (centre, sweep) should not pay.
-    """
-
-    def __init__(self, score: CropDistance, image: np.ndarray) -> None:
-        self.score = score
-        self.image = image
-
-    @cached_property
-    def query_seed(self) -> int:
-        return image_fingerprint(self.image)
-
-    def __call__(self, crops: Sequence[Crop]) -> np.ndarray:
-        return self.score(crops)
-
-
-def as_numpy(tensor: torch.Tensor | None, count: int) -> np.ndarray:
-    if tensor is None:
-        return np.full(count, np.nan)
-    return tensor.double().cpu().numpy()
 
 
 def check_retrieval(index: SimilarityIndex, retrieval_k: int) -> None:
@@ -180,6 +145,11 @@ class Relocalizer:
             backbone's Monte Carlo dropout on, each window gets its own mask. Needs a
             model trained with crop_scale > 1 (else every window is the same).
         sample_seed: seeds the samples, mixed with each query image's fingerprint.
+        rerank: see scoring.
+        queries_at_once: how many queries a list of images (relocfw.evaluation,
+            task=localize) runs together through `localize_many`, their windows in
+            shared forward passes; 1 localizes one at a time (each query's own
+            latency in `seconds`).
 
     Candidate crops and the map are always scored by the dropout-free network; only
     the chosen crop is sampled (backbone.mc_samples, crop_samples), once.
@@ -197,6 +167,7 @@ class Relocalizer:
         crop_samples: int = 0,
         sample_seed: int = 0,
         rerank: int = 1,
+        queries_at_once: int = 1,
     ) -> None:
         check_scoring(scoring, backbone)
         self.rerank = check_rerank(rerank, scoring)
@@ -212,10 +183,14 @@ class Relocalizer:
         self.batch_size = int(batch_size)
         self.retrieval_k = int(retrieval_k)
         check_retrieval(index, self.retrieval_k)
+        if int(queries_at_once) != queries_at_once or queries_at_once < 1:
+            raise ConfigError(f"queries_at_once must be an integer >= 1, got {queries_at_once!r}")
+        self.queries_at_once = int(queries_at_once)
         self.crop_samples = int(crop_samples)
         self.sample_seed = int(sample_seed)
         check_sampling(self.retrieval_k, self.crop_samples, configured_samples(backbone))
         self._threadpools: ThreadpoolController | None = None  # found on first query
+        self._map_lock = threading.Lock()
         self._cells: int | None = None  # see _window_cells
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
@@ -314,11 +289,13 @@ class Relocalizer:
         return self._threadpools.limit(limits=1, user_api="blas")
 
     def _map_distance(self, features: np.ndarray) -> np.ndarray:
-        with self._one_blas_thread():
+        # The lock: localize_many's searches may look up the map from several threads
+        # (scoring=shared), and the BLAS thread limit is process-wide.
+        with self._map_lock, self._one_blas_thread():
             return self.index.distance(features)
 
     def _retrieved_pose(self, features: np.ndarray) -> Pose:
-        with self._one_blas_thread():
+        with self._map_lock, self._one_blas_thread():
             distances, indices = self.index.neighbours(features[None], self.retrieval_k)
         weights = 1.0 / (distances[0] + 1e-6)
         weights /= weights.sum()
@@ -374,82 +351,82 @@ class Relocalizer:
 
     def localize(self, image: np.ndarray) -> Localization:
         """Pose of one RGB image (H x W x 3 uint8) through the crop search."""
-        start = time.perf_counter()
-        strip = Strip(image, self.backbone.input_size, self.crop_scale)
-        # Network answers per strip window: offsets that round to the same window are
-        # the same network input, so it is computed once.
-        results: dict[tuple[int, int], tuple[float, NetworkAnswers]] = {}
-        shared: dict[tuple[int, int], float] = {}  # scoring=shared: window -> distance
-        strip_maps: StripMaps | None = None  # built on the first shared score, if any
+        run = QueryRun(self, image, self._score_corners)
+        run.choose()
+        return run.answer()
 
-        def evaluate(corners: list[tuple[int, int]]) -> None:
-            new = list(dict.fromkeys(c for c in corners if c not in results))
-            if not new:
-                return
-            distances, answers = self._score_corners(strip, new)
-            for i, corner in enumerate(new):
-                results[corner] = (
-                    float(distances[i]),
-                    NetworkAnswers(*(column[i] for column in answers)),
-                )
+    def localize_many(
+        self, images: Sequence[np.ndarray], queries_at_once: int | None = None
+    ) -> list[Localization]:
+        """Poses of many images, the plain windows of `queries_at_once` queries scored
+        in shared forward passes (at most `batch_size` windows each).
 
-        def score_shared(corners: list[tuple[int, int]]) -> None:
-            nonlocal strip_maps
-            new = list(dict.fromkeys(c for c in corners if c not in shared))
-            if not new:
-                return
-            if strip_maps is None:
-                strip_maps = self._strip_maps(strip)
-            distances = self._map_distance(self._shared_features(strip_maps, new))
-            shared.update(zip(new, (float(d) for d in distances), strict=True))
+        Each query's search runs as in `localize` (its own random stream, its own
+        windows), so the answers are `localize`'s; only the network calls are merged:
+        the centre crops of a group go through in one batch, the GA's generations of
+        the whole group together. A query's `seconds` is its group's time shared
+        equally among the group's queries.
+        """
+        if queries_at_once is None:
+            queries_at_once = self.queries_at_once
+        if queries_at_once < 1:
+            raise ConfigError(f"queries_at_once must be >= 1, got {queries_at_once}")
+        answers: list[Localization] = []
+        for start in range(0, len(images), queries_at_once):
+            answers += self._localize_group(images[start : start + queries_at_once])
+        return answers
 
-        crop_of: dict[tuple[int, int], Crop] = {}  # a crop for every window scored
+    def _localize_group(self, images: Sequence[np.ndarray]) -> list[Localization]:
+        if len(images) == 1:
+            return [self.localize(images[0])]
+        started = time.perf_counter()
+        lockstep = Lockstep(len(images), self._score_together)
+        runs = [
+            QueryRun(self, image, partial(self._ask, lockstep, member))
+            for member, image in enumerate(images)
+        ]
+        failures: list[BaseException] = []
 
-        def distance(crops: Sequence[Crop]) -> np.ndarray:
-            corners = [strip.window(c) for c in crops]
-            for corner, crop in zip(corners, crops, strict=True):
-                crop_of.setdefault(corner, crop)
-            if self.scoring == "shared":
-                score_shared(corners)
-                return np.array([shared[c] for c in corners])
-            evaluate(corners)
-            return np.array([results[c][0] for c in corners])
+        def search(member: int) -> None:
+            try:
+                runs[member].choose()
+            except BaseException as error:  # noqa: BLE001 - re-raised below, in order
+                failures.append(error)
+            finally:
+                lockstep.leave(member)
 
-        query = QueryDistance(distance, image)
-        chosen = self.crop.search(strip.width, strip.height, query)
-        corner = strip.window(chosen)
-        if self.rerank > 1 and shared:
-            # The shared distances only rank: the best `rerank` windows go through the
-            # plain network in one batch and the plain distance chooses among them.
-            # The search's own choice is always among them.
-            ranked = sorted(shared, key=shared.__getitem__)
-            candidates = list(dict.fromkeys([corner, *ranked]))[: self.rerank]
-            evaluate(candidates)
-            best = min(candidates, key=lambda c: results[c][0])
-            if best != corner:
-                corner, chosen = best, crop_of[best]
-        evaluate([corner])
-        best_distance, answer = results[corner]
-        sampled_passes = 0
-        if self.crop_samples > 0 or configured_samples(self.backbone) > 0:
-            answer, sampled_passes = self._sampled_answer(strip, chosen, answer, query.query_seed)
-        pose = self._answer_pose(answer)
-        # Cost in whole-network passes: each plain window is one; the strip pass costs
-        # its area over a window's (the trunk dominates the network's work).
-        side = self.backbone.input_size
-        strip_passes = strip.pixels.shape[1] * strip.pixels.shape[2] / side**2
-        return Localization(
-            pose=pose,
-            crop=chosen,
-            distance=best_distance,
-            evaluations=len(set(results) | set(shared)),
-            seconds=time.perf_counter() - start,
-            position_spread=float(answer.position_spread),
-            orientation_spread_deg=float(answer.orientation_spread_deg),
-            network_passes=len(results)
-            + sampled_passes
-            + (0.0 if strip_maps is None else strip_passes),
-        )
+        threads = [threading.Thread(target=search, args=(m,)) for m in range(len(runs))]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join()
+        if failures:
+            raise failures[0]
+        # Sampling (dropout masks, seeded per query) runs here, one query at a time:
+        # torch's random stream and the backbone's sample count are not per thread.
+        seconds = (time.perf_counter() - started) / len(runs)
+        return [run.answer(seconds) for run in runs]
+
+    @staticmethod
+    def _ask(
+        lockstep: Lockstep, member: int, strip: Strip, corners: list[tuple[int, int]]
+    ) -> tuple[np.ndarray, NetworkAnswers]:
+        return lockstep.ask(member, (strip, corners))
+
+    def _score_together(
+        self, requests: Sequence[tuple[Strip, list[tuple[int, int]]]]
+    ) -> list[tuple[np.ndarray, NetworkAnswers]]:
+        """Plain windows of several queries in one forward pass, split back."""
+        windows = torch.stack([strip.cut(c) for strip, corners in requests for c in corners])
+        answers = self._forward(windows)
+        distances = self._map_distance(answers.features)
+        split, start = [], 0
+        for _, corners in requests:
+            end = start + len(corners)
+            part = NetworkAnswers(*(column[start:end] for column in answers))
+            split.append((distances[start:end], part))
+            start = end
+        return split
 
     def _sampled_answer(
         self, strip: Strip, crop: Crop, plain: NetworkAnswers, fingerprint: int

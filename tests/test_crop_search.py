@@ -5,7 +5,7 @@ import torch
 from relocfw.errors import ConfigError
 from relocfw.imaging import image_fingerprint
 from relocfw.interfaces import CropSearch, crop_at, query_seed
-from relocfw.pipeline import QueryDistance, Relocalizer
+from relocfw.pipeline import Relocalizer
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import (
@@ -17,6 +17,7 @@ from relocfw.plugins.ga_crop import (
 )
 from relocfw.plugins.posenet import PoseNet
 from relocfw.plugins.sweep_crop import SweepCrop
+from relocfw.query_run import QueryRun
 from relocfw.values import Crop
 
 
@@ -116,7 +117,11 @@ def test_each_query_gets_its_own_stream_and_the_same_query_the_same_one():
 
 def test_the_query_seed_is_the_image_fingerprint_computed_only_when_asked():
     image = np.random.default_rng(0).integers(0, 256, size=(36, 48, 3), dtype=np.uint8)
-    query = QueryDistance(lambda crops: np.zeros(len(crops)), image)
+    torch.manual_seed(0)
+    relocalizer = Relocalizer(
+        PoseNet(input_size=32, width=0.0625, feature_dim=16), ExhaustiveIndex(), SeedRecorder()
+    )
+    query = QueryRun(relocalizer, image, relocalizer._score_corners)
     assert "query_seed" not in vars(query)  # a centre crop or sweep never pays the hash
     assert query_seed(query) == image_fingerprint(image) == image_fingerprint(image.copy())
     assert image_fingerprint(image[:, ::-1]) != image_fingerprint(image)
