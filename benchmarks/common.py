@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 from pathlib import Path
 
 import numpy as np
 
 from relocfw.checkpoints import write_text_atomic
+from relocfw.data.frames import Frame
 from relocfw.data.room import Room, RoomRenderer
 from relocfw.data.synthetic import SyntheticSceneSpec, lap_poses, scene_laps
 from relocfw.geometry import pose_from_matrix
@@ -32,3 +34,11 @@ def write_json(report: dict, out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     write_text_atomic(json.dumps(report, indent=2) + "\n", out)
     print(f"written: {out}")
+
+
+def model_frames(relocalizer, cache_dir: Path, split: str = "test") -> list[Frame]:
+    """A split of the dataset named in a model file's metadata (Relocalizer.load)."""
+    settings = dict(relocalizer.metadata["dataset_settings"])
+    module, _, name = settings.pop("_target_").rpartition(".")
+    dataset = getattr(importlib.import_module(module), name)(cache_dir=cache_dir, **settings)
+    return dataset.frames(split)

@@ -21,13 +21,12 @@ Prints a table, writes JSON.
 from __future__ import annotations
 
 import argparse
-import importlib
 import os
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import write_json  # benchmarks/, the script's own folder
+from common import model_frames, write_json  # benchmarks/, the script's own folder
 
 from relocfw import Relocalizer
 from relocfw.data.frames import read_images
@@ -37,14 +36,6 @@ from relocfw.interfaces import crop_at, crop_side_and_span
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.sweep_crop import SweepCrop
 from relocfw.values import Pose
-
-
-def test_frames(relocalizer: Relocalizer, cache_dir: Path) -> list:
-    """The test split of the dataset named in the model file's metadata."""
-    settings = dict(relocalizer.metadata["dataset_settings"])
-    module, _, name = settings.pop("_target_").rpartition(".")
-    dataset = getattr(importlib.import_module(module), name)(cache_dir=cache_dir, **settings)
-    return dataset.frames("test")
 
 
 def descriptor_agreement(plain: Relocalizer, shared: Relocalizer, image: np.ndarray) -> dict:
@@ -104,7 +95,7 @@ def main() -> None:
     args = parser.parse_args()
     plain = Relocalizer.load(args.model)
     shared = Relocalizer.load(args.model, scoring="shared")
-    frames = test_frames(plain, args.cache.expanduser())
+    frames = model_frames(plain, args.cache.expanduser())
     images = read_images(frames, quiet=True)
 
     agreement = [descriptor_agreement(plain, shared, image) for image in images]

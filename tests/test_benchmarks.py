@@ -73,3 +73,81 @@ def test_index_scale(tmp_path):
     assert "faiss flat (exact)" in names and "exhaustive (numpy float64)" in names
     exact = [r for r in report["rows"] if r["index"] == "exhaustive (numpy float64)"]
     assert exact[0]["recall_at_1"] == 1.0  # numpy and faiss agree on the nearest
+
+
+@pytest.fixture(scope="module")
+def tiny_model(tmp_path_factory):
+    """A model file from the CLI on the tiny scene, and the cache its scene is in."""
+    import os
+
+    from tests.conftest import TINY_OVERRIDES
+
+    root = tmp_path_factory.mktemp("benchmark-model")
+    cache = root / "cache"
+    command = [sys.executable, "-m", "relocfw", *TINY_OVERRIDES, f"hydra.run.dir={root / 'run'}"]
+    env = {**os.environ, "RELOCFW_CACHE": str(cache)}
+    result = subprocess.run(command, capture_output=True, text=True, timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-3000:]
+    return root / "run" / "model.relocfw", cache
+
+
+def test_faithful_scoring(tmp_path, tiny_model):
+    model, cache = tiny_model
+    report = run_script(
+        "faithful_scoring.py",
+        tmp_path / "f.json",
+        "--model",
+        str(model),
+        "--cache",
+        str(cache),
+        "--rerank",
+        "1",
+        "100",
+    )
+    rows = {r["setting"]: r for r in report["rows"]}
+    # Re-scoring every window plainly is the plain sweep: full agreement, same minimum.
+    assert rows["sweep shared m=100"]["agreement"] == 1.0
+    assert rows["sweep shared m=100"]["median_distance_ratio"] == pytest.approx(1.0)
+    assert rows["centre"]["times_centre"] == 1.0 and "verdict" in report
+
+
+def test_batched_throughput(tmp_path, tiny_model):
+    model, cache = tiny_model
+    report = run_script(
+        "batched_throughput.py",
+        tmp_path / "b.json",
+        "--model",
+        str(model),
+        "--cache",
+        str(cache),
+        "--group",
+        "3",
+    )
+    for row in report["rows"]:
+        assert row["same_crop"] == 1.0 and row["max_pose_difference_m"] < 1e-5
+
+
+def test_cost_scaling(tmp_path, tiny_model, monkeypatch):
+    model, cache = tiny_model
+    report = run_script(
+        "cost_scaling.py",
+        tmp_path / "c.json",
+        "--queries",
+        "1",
+        "--map-images",
+        "4",
+        "--input-size",
+        "32",
+        "--only",
+        "ga",
+        "map",
+        "--model",
+        str(model),
+        "--cache",
+        str(cache),
+        "--map-sizes",
+        "20",
+        "40",
+    )
+    assert [r["population"] for r in report["ga_budgets"]] == [10, 20, 10, 20, 40]
+    assert {r["map_descriptors"] for r in report["map_sizes"]} == {20, 40}

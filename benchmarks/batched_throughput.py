@@ -1,0 +1,106 @@
+"""Test-split throughput: one query at a time against groups in lockstep.
+
+Loads a model file written by `relocfw` (task=relocalize) and the test split of the
+dataset it was built on, then localizes the split with each crop search twice: one
+query at a time (`Relocalizer.localize`, as before) and in groups whose candidate
+windows share forward passes (`Relocalizer.localize_many`). Reports queries/s of
+both, the gain, and how far the two modes' answers are apart (they should be the
+same up to float rounding). Prints a table, writes JSON.
+
+    .venv/bin/python benchmarks/batched_throughput.py \\
+        --model outputs/paper_geometry/model.relocfw --group 16
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import model_frames, write_json  # benchmarks/, the script's own folder
+from shared_scoring import pose_difference
+
+from relocfw import Relocalizer
+from relocfw.data.frames import read_images
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.plugins.ga_crop import GeneticCropSearch
+from relocfw.plugins.sweep_crop import SweepCrop
+
+SETTINGS = {
+    "centre": (CentreCrop, "plain"),
+    "ga plain": (GeneticCropSearch, "plain"),
+    "ga shared": (GeneticCropSearch, "shared"),
+    "sweep plain": (SweepCrop, "plain"),
+}
+
+
+def timed(run) -> tuple[list, float]:
+    start = time.perf_counter()
+    answers = run()
+    return answers, time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--model", type=Path, required=True)
+    parser.add_argument(
+        "--cache", type=Path, default=Path(os.environ.get("RELOCFW_CACHE", "~/.cache/relocfw"))
+    )
+    parser.add_argument("--group", type=int, default=16, help="queries localized together")
+    parser.add_argument("--batch-size", type=int, default=256, help="most windows per pass")
+    parser.add_argument("--queries", type=int, default=0, help="first N test images; 0: all")
+    parser.add_argument("--only", nargs="+", choices=sorted(SETTINGS), default=list(SETTINGS))
+    parser.add_argument(
+        "--out", type=Path, default=Path("benchmarks/results/batched_throughput.json")
+    )
+    args = parser.parse_args()
+    rows = []
+    frames = model_frames(Relocalizer.load(args.model), args.cache.expanduser())
+    images = read_images(frames[: args.queries] if args.queries else frames, quiet=True)
+    for name in args.only:
+        crop, scoring = SETTINGS[name]
+        relocalizer = Relocalizer.load(args.model, batch_size=args.batch_size, scoring=scoring)
+        relocalizer.crop = crop()
+        relocalizer.localize_many(images[: args.group], args.group)  # warm-up
+        single, single_s = timed(lambda r=relocalizer: [r.localize(i) for i in images])
+        many, many_s = timed(lambda r=relocalizer: r.localize_many(images, args.group))
+        positions, angles = pose_difference([a.pose for a in many], [a.pose for a in single])
+        same = [a.crop == b.crop for a, b in zip(many, single, strict=True)]
+        rows.append(
+            {
+                "setting": name,
+                "queries": len(images),
+                "one_at_a_time_queries_per_second": len(images) / single_s,
+                "batched_queries_per_second": len(images) / many_s,
+                "gain": single_s / many_s,
+                "same_crop": float(np.mean(same)),
+                "max_pose_difference_m": float(positions.max()),
+                "max_pose_difference_deg": float(angles.max()),
+            }
+        )
+        r = rows[-1]
+        print(
+            f"{name:<12} one at a time {r['one_at_a_time_queries_per_second']:7.2f} q/s, "
+            f"groups of {args.group} {r['batched_queries_per_second']:7.2f} q/s "
+            f"(x{r['gain']:.2f}); same crop {r['same_crop']:.0%}, "
+            f"max difference {r['max_pose_difference_m']:.1e} m"
+        )
+    report = {
+        "model": str(args.model),
+        "image": list(images[0].shape[1::-1]),
+        "input_size": int(relocalizer.backbone.input_size),
+        "group": args.group,
+        "batch_size": args.batch_size,
+        "torch_threads": torch.get_num_threads(),
+        "machine": platform.machine(),
+        "rows": rows,
+    }
+    write_json(report, args.out)
+
+
+if __name__ == "__main__":
+    main()
