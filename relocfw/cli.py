@@ -29,8 +29,9 @@ from relocfw.hydra_plugins import options_help
 from relocfw.localize_job import find_images, localize_images
 from relocfw.model_file import save_model
 from relocfw.options import integer_at_least
-from relocfw.pipeline import Relocalizer, check_rerank
+from relocfw.pipeline import Relocalizer, check_rerank, check_sampling
 from relocfw.plugin_discovery import conflicts, discover_options
+from relocfw.sampling import configured_samples
 from relocfw.torchrun import join_torchrun, leave_torchrun
 
 TASKS = ("relocalize", "train", "compare", "localize", "plugins", "diagnose")
@@ -46,15 +47,34 @@ def check_common(cfg: DictConfig) -> torch.device:
     return pick_device(cfg.device)
 
 
+def cli_overrides() -> set[str]:
+    """Keys set on this command line (`key=value`, `+key=value`)."""
+    return {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
+
+
 def run_localize(cfg: DictConfig, device: torch.device) -> None:
     if not cfg.model:
         raise ConfigError("model is not set: pass model=FILE (a model.relocfw from a run)")
     relocalizer = Relocalizer.load(
         Path(cfg.model), device, int(cfg.query_batch_size), str(cfg.scoring)
     )
+    # Query-time options from the command line, over what the model file kept.
     relocalizer.queries_at_once = integer_at_least("queries_at_once", cfg.queries_at_once, 1)
-    if int(cfg.rerank) > 1:  # the command line's, over what the model file kept
-        relocalizer.rerank = check_rerank(int(cfg.rerank), relocalizer.scoring)
+    given = cli_overrides()
+    for key, attribute, least in (
+        ("rerank", "rerank", 1),
+        ("crop_samples", "crop_samples", 0),
+        ("seed", "sample_seed", 0),
+    ):
+        if key in given:
+            setattr(relocalizer, attribute, integer_at_least(key, cfg[key], least))
+    check_rerank(relocalizer.rerank, relocalizer.scoring)
+    check_sampling(
+        relocalizer.retrieval_k,
+        relocalizer.crop_samples,
+        configured_samples(relocalizer.backbone),
+        relocalizer.crop_scale,
+    )
     images = find_images(str(cfg.images or ""))
     localize_images(relocalizer, images, Path(HydraConfig.get().runtime.output_dir), cfg.quiet)
 

@@ -152,12 +152,15 @@ def method_label(cfg: DictConfig, choices: Mapping[str, str]) -> str:
         label += f", {cfg.scoring} scoring"
     if int(cfg.get("rerank", 1)) > 1:
         label += f", best {cfg.rerank} re-scored"
-    if int(cfg.get("crop_samples", 0)) > 0:
-        label += f", x{cfg.crop_samples} random crops"
-    if choices["backbone"] != "posenet" or int(cfg.backbone.get("mc_samples", 0)) > 0:
-        samples = int(cfg.backbone.get("mc_samples", 0))
-        variant = cfg.backbone.get("dropout_variant", "head")
-        sampled = f" x{samples} MC ({variant})" if samples else ""
+    crops = int(cfg.get("crop_samples", 0))
+    samples = int(cfg.backbone.get("mc_samples", 0))
+    if crops > 0:
+        label += f", x{crops} random crops"
+    if choices["backbone"] != "posenet" or samples > 0:
+        variant = cfg.backbone.get("dropout_variant")
+        where = f" ({variant})" if variant else ""
+        # With random crops, dropout draws one mask per crop: the count is the crops'.
+        sampled = (f" MC dropout{where}" if crops else f" x{samples} MC{where}") if samples else ""
         label = f"{choices['backbone']}{sampled}: {label}"
     return label
 
@@ -174,12 +177,6 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     settings = train_settings(cfg)
     retrieval_k = integer_at_least("retrieval_k", cfg.retrieval_k, 0)
     crop_samples = integer_at_least("crop_samples", cfg.get("crop_samples", 0), 0)
-    if crop_samples > 0 and settings.crop_scale <= 1.0:
-        raise ConfigError(
-            f"crop_samples={crop_samples} draws random windows inside the chosen crop, but "
-            f"train.crop_scale={settings.crop_scale} makes the window fill the crop: every "
-            "sample would be the same window (train with train.crop_scale > 1)"
-        )
     # Seeded here, in the CLI, so the same command initialises the same network.
     torch.manual_seed(int(cfg.seed))
     backbone = build(cfg, "backbone", choices["backbone"])
@@ -188,7 +185,8 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     check_retrieval(index, retrieval_k)
     check_scoring(str(cfg.scoring), backbone)
     rerank = check_rerank(integer_at_least("rerank", cfg.get("rerank", 1), 1), str(cfg.scoring))
-    check_sampling(retrieval_k, crop_samples, configured_samples(backbone))
+    # Before training: the trained model will have train.crop_scale.
+    check_sampling(retrieval_k, crop_samples, configured_samples(backbone), settings.crop_scale)
     check_pretrained(cfg, choices, backbone)
     options = {
         group: {

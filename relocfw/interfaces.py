@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -49,7 +50,7 @@ class Backbone(torch.nn.Module, ABC):
     # Options left out of the checkpoint key while they hold these values: an option
     # added after models were trained, whose default is what those models are, keeps
     # their key (and their cached checkpoints).
-    key_defaults: dict[str, object] = {}
+    key_defaults: ClassVar[Mapping[str, object]] = {}
     # Options replaced when a saved model is rebuilt: its state already holds the
     # weights, so e.g. an ImageNet weights file is not needed (or read) again.
     rebuild_overrides: dict[str, object] = {}
@@ -146,6 +147,9 @@ class CropSearch(ABC):
 
         A search that draws random numbers seeds them from its own seed and
         `query_seed(distance)`, so each query is searched independently.
+        `Relocalizer.localize_many` runs several queries' searches at once, each in a
+        thread: keep per-query state in local variables, not on `self`, and draw
+        from your own generator, never a global one.
         """
 
 

@@ -158,12 +158,16 @@ def relocalize(
     if "posenet" in baselines and not (
         isinstance(relocalizer.crop, CentreCrop) and relocalizer.retrieval_k == 0
     ):
+        # PoseNet: the centre crop of the same network and map, sampled as the method's
+        # network is (backbone.mc_samples), with its seed; no random crops.
         centre = Relocalizer(
             relocalizer.backbone,
             relocalizer.index,
             CentreCrop(),
             relocalizer.device,
             relocalizer.batch_size,
+            sample_seed=relocalizer.sample_seed,
+            queries_at_once=relocalizer.queries_at_once,
         )
         # The map is already fitted; only the queries run again.
         results.append(evaluate(centre_label, centre, *test, quiet=quiet))

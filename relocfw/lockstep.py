@@ -4,9 +4,10 @@ A crop search is plain sequential code that calls its distance function a few ti
 (the GA once per generation). To batch the candidates of B queries into one forward
 pass without changing any search, each query's search runs in a thread of its own
 and every network call goes to a Lockstep. It waits until each query still running
-has asked (or finished), then answers all of them from one merged call. The threads
-never compute at the same time as the merged call: the network always runs on one
-thread, with all of torch's intra-op threads.
+has asked (or finished), then answers all of them from one merged call, made while
+every thread waits, so it runs alone with all of torch's intra-op threads. What a
+search computes between its calls (the GA's breeding, shared scoring's strip pass,
+which the pipeline serialises with a lock of its own) runs in its thread.
 """
 
 from __future__ import annotations

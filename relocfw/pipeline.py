@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Sequence
@@ -31,7 +32,7 @@ from relocfw.sampling import (
     combine_samples,
     configured_samples,
     monte_carlo,
-    query_stream,
+    query_streams,
     random_windows,
     seeded_torch,
 )
@@ -80,10 +81,19 @@ def check_retrieval(index: SimilarityIndex, retrieval_k: int) -> None:
         )
 
 
-def check_sampling(retrieval_k: int, crop_samples: int, mc_samples: int) -> None:
-    """Raise ConfigError for sampling options that cannot mean anything."""
+def check_sampling(retrieval_k: int, crop_samples: int, mc_samples: int, crop_scale: float) -> None:
+    """Raise ConfigError for sampling options that cannot mean anything.
+
+    `crop_scale` is the model's (train.crop_scale): at 1 the window fills the crop.
+    """
     if crop_samples < 0:
         raise ConfigError(f"crop_samples must be >= 0, got {crop_samples}")
+    if crop_samples > 0 and crop_scale <= 1.0:
+        raise ConfigError(
+            f"crop_samples={crop_samples} draws random windows inside the chosen crop, but "
+            f"the model's crop_scale is {crop_scale:g}: the window fills the crop and every "
+            "sample would be the same window (train with train.crop_scale > 1)"
+        )
     if retrieval_k > 0 and (crop_samples > 0 or mc_samples > 0):
         raise ConfigError(
             "retrieval_k > 0 answers with map images' poses, but crop_samples / "
@@ -145,7 +155,6 @@ class Relocalizer:
             backbone's Monte Carlo dropout on, each window gets its own mask. Needs a
             model trained with crop_scale > 1 (else every window is the same).
         sample_seed: seeds the samples, mixed with each query image's fingerprint.
-        rerank: see scoring.
         queries_at_once: how many queries a list of images (relocfw.evaluation,
             task=localize) runs together through `localize_many`, their windows in
             shared forward passes; 1 localizes one at a time (each query's own
@@ -153,6 +162,10 @@ class Relocalizer:
 
     Candidate crops and the map are always scored by the dropout-free network; only
     the chosen crop is sampled (backbone.mc_samples, crop_samples), once.
+
+    One call at a time: sampling sets the backbone's sample count and torch's random
+    stream for its duration, so two threads must not localize with one Relocalizer
+    (`localize_many` runs many queries safely).
     """
 
     def __init__(
@@ -187,10 +200,15 @@ class Relocalizer:
             raise ConfigError(f"queries_at_once must be an integer >= 1, got {queries_at_once!r}")
         self.queries_at_once = int(queries_at_once)
         self.crop_samples = int(crop_samples)
+        if int(sample_seed) != sample_seed or sample_seed < 0:
+            raise ConfigError(f"sample_seed must be an integer >= 0, got {sample_seed!r}")
         self.sample_seed = int(sample_seed)
-        check_sampling(self.retrieval_k, self.crop_samples, configured_samples(backbone))
+        check_sampling(
+            self.retrieval_k, self.crop_samples, configured_samples(backbone), self.crop_scale
+        )
         self._threadpools: ThreadpoolController | None = None  # found on first query
         self._map_lock = threading.Lock()
+        self._network_lock = threading.Lock()
         self._cells: int | None = None  # see _window_cells
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
@@ -326,7 +344,10 @@ class Relocalizer:
         """The trunk's maps of the whole strip: one pass for every candidate window."""
         pixels = to_network_input(strip.pixels[None].to(self.device))
         pixels = pixels.contiguous(memory_format=self.memory_format)
-        maps = self.backbone.feature_maps(pixels)[0]
+        # localize_many's searches reach here from several threads: one network pass
+        # at a time, each with all of torch's threads (no oversubscription).
+        with self._network_lock:
+            maps = self.backbone.feature_maps(pixels)[0]
         height, width = strip.pixels.shape[1:]
         return StripMaps(maps, height, width, self.backbone.input_size, self._window_cells())
 
@@ -342,12 +363,14 @@ class Relocalizer:
         if self._cells is None:
             side = self.backbone.input_size
             blank = torch.zeros(1, 3, side, side, device=self.device)
-            self._cells = int(self.backbone.feature_maps(blank).shape[-1])
+            with self._network_lock:
+                self._cells = int(self.backbone.feature_maps(blank).shape[-1])
         return self._cells
 
     @torch.inference_mode()
     def _shared_features(self, maps: StripMaps, corners: list[tuple[int, int]]) -> np.ndarray:
-        return self.backbone.describe_pooled(maps.pooled(corners)).double().cpu().numpy()
+        with self._network_lock:
+            return self.backbone.describe_pooled(maps.pooled(corners)).double().cpu().numpy()
 
     def localize(self, image: np.ndarray) -> Localization:
         """Pose of one RGB image (H x W x 3 uint8) through the crop search."""
@@ -369,8 +392,9 @@ class Relocalizer:
         """
         if queries_at_once is None:
             queries_at_once = self.queries_at_once
-        if queries_at_once < 1:
-            raise ConfigError(f"queries_at_once must be >= 1, got {queries_at_once}")
+        if int(queries_at_once) != queries_at_once or queries_at_once < 1:
+            raise ConfigError(f"queries_at_once must be an integer >= 1, got {queries_at_once!r}")
+        queries_at_once = int(queries_at_once)
         answers: list[Localization] = []
         for start in range(0, len(images), queries_at_once):
             answers += self._localize_group(images[start : start + queries_at_once])
@@ -385,27 +409,35 @@ class Relocalizer:
             QueryRun(self, image, partial(self._ask, lockstep, member))
             for member, image in enumerate(images)
         ]
-        failures: list[BaseException] = []
+        failures: dict[int, BaseException] = {}
 
         def search(member: int) -> None:
             try:
                 runs[member].choose()
-            except BaseException as error:  # noqa: BLE001 - re-raised below, in order
-                failures.append(error)
+            except BaseException as error:  # noqa: BLE001 - re-raised below
+                failures[member] = error
             finally:
                 lockstep.leave(member)
 
         threads = [threading.Thread(target=search, args=(m,)) for m in range(len(runs))]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join()
+        started_threads = 0
+        try:
+            for thread in threads:
+                thread.start()
+                started_threads += 1
+        finally:
+            # Members that never started must not be waited for by those that did.
+            for member in range(started_threads, len(runs)):
+                lockstep.leave(member)
+            for thread in threads[:started_threads]:
+                thread.join()
         if failures:
-            raise failures[0]
+            raise failures[min(failures)]  # the first query's error, whatever the timing
         # Sampling (dropout masks, seeded per query) runs here, one query at a time:
         # torch's random stream and the backbone's sample count are not per thread.
+        answers = [run.answer() for run in runs]
         seconds = (time.perf_counter() - started) / len(runs)
-        return [run.answer(seconds) for run in runs]
+        return [dataclasses.replace(answer, seconds=seconds) for answer in answers]
 
     @staticmethod
     def _ask(
@@ -436,14 +468,14 @@ class Relocalizer:
         `plain` is the crop's dropout-free answer: its descriptor, the one the index
         saw, stays the answer's descriptor.
         """
-        stream = query_stream(self.sample_seed, fingerprint)
+        windows_rng, torch_seed = query_streams(self.sample_seed, fingerprint)
         masks = configured_samples(self.backbone)
-        with seeded_torch(int(stream.generate_state(1)[0]), self.device):
+        with seeded_torch(torch_seed, self.device):
             if self.crop_samples == 0:
                 window = strip.cut(strip.window(crop))[None]
                 sampled = self._forward(window, masks)
                 return NetworkAnswers(*(column[0] for column in sampled)), 1
-            corners = random_windows(strip, crop, self.crop_samples, np.random.default_rng(stream))
+            corners = random_windows(strip, crop, self.crop_samples, windows_rng)
             windows = torch.stack([strip.cut(c) for c in corners])
             # With dropout on, one mask per window: every sample is a new crop and mask.
             samples = self._forward(windows, 1 if masks > 0 else 0)

@@ -43,9 +43,9 @@ def mean_quaternions(samples: torch.Tensor) -> torch.Tensor:
     return torch.where(mean[:, :1] < 0, -mean, mean)
 
 
-SAMPLED_IMAGES_PER_PASS = 256
+SAMPLED_IMAGES_PER_PASS = 256  # see PoseHead.images_per_pass
 # Where a backbone's dropout can sit (backbone.dropout_variant); see plugins/posenet.py.
-DROPOUT_VARIANTS = ("head", "kendall", "all")  # see PoseHead.images_per_pass
+DROPOUT_VARIANTS = ("head", "kendall", "all")
 
 
 def sample_statistics(

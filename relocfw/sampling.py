@@ -52,20 +52,40 @@ def monte_carlo(backbone: Backbone, samples: int) -> Iterator[None]:
 
 @contextmanager
 def seeded_torch(seed: int, device: torch.device) -> Iterator[None]:
-    """torch's random streams seeded with `seed` inside, restored outside.
+    """torch's random streams of the CPU and `device` seeded with `seed` inside,
+    restored outside.
 
-    Dropout draws from torch's default generator; forking it keeps the caller's
-    streams (a training run, the next query) untouched.
+    Dropout draws from the default generator of the device it runs on; forking only
+    that one (and the CPU's) keeps every stream of the caller (a training run, the
+    next query, other GPUs) untouched.
     """
-    devices = list(range(torch.cuda.device_count())) if device.type == "cuda" else []
-    with torch.random.fork_rng(devices=devices):
-        torch.manual_seed(seed)
-        yield
+    if device.type == "cuda":
+        index = device.index if device.index is not None else torch.cuda.current_device()
+        with torch.random.fork_rng(devices=[index], device_type="cuda"):
+            torch.default_generator.manual_seed(seed)
+            torch.cuda.default_generators[index].manual_seed(seed)
+            yield
+    elif device.type == "mps":
+        with torch.random.fork_rng(device_type="mps"):
+            torch.default_generator.manual_seed(seed)
+            torch.mps.manual_seed(seed)
+            yield
+    else:
+        with torch.random.fork_rng(devices=[]):
+            torch.default_generator.manual_seed(seed)
+            yield
 
 
-def query_stream(seed: int, fingerprint: int) -> np.random.SeedSequence:
-    """One query's seed material: the run's seed mixed with the image's fingerprint."""
-    return np.random.SeedSequence([int(seed), int(fingerprint)])
+# Mixed into every sampling stream, so it never repeats a crop search's stream, which
+# is drawn from the same run seed and image fingerprint (relocfw.interfaces.query_seed).
+SAMPLING_STREAM = 0x5A3D1E
+
+
+def query_streams(seed: int, fingerprint: int) -> tuple[np.random.Generator, int]:
+    """One query's random windows' generator and its dropout masks' torch seed, both
+    from the run's seed and the image's fingerprint, independent of each other."""
+    windows, masks = np.random.SeedSequence([int(seed), int(fingerprint), SAMPLING_STREAM]).spawn(2)
+    return np.random.default_rng(windows), int(masks.generate_state(1, np.uint64)[0] >> 1)
 
 
 def random_windows(

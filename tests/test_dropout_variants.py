@@ -145,3 +145,14 @@ def test_efficientnet_head_variant_keeps_the_models_trained_before_variants_exis
     torch.manual_seed(4)
     second = model(x).features
     assert torch.allclose(first, second)
+
+
+@pytest.mark.parametrize("training", [False, True])
+def test_efficientnet_trunk_split_is_the_packages_own_forward(training):
+    model = tiny_efficientnet("head", samples=0).train(training)
+    x = images(2)
+    torch.manual_seed(5)  # stochastic depth draws the same masks in both
+    ours = model.feature_maps(x)
+    torch.manual_seed(5)
+    theirs = model.trunk.extract_features(x * 2.0 - 1.0)
+    assert torch.equal(ours, theirs)

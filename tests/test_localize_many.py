@@ -106,7 +106,7 @@ def test_a_failing_search_fails_the_call_and_leaves_no_thread_behind(scene):
 
 def test_impossible_group_size_is_refused(scene):
     relocalizer = Relocalizer(BatchRecorder(), ExhaustiveIndex(), CentreCrop())
-    with pytest.raises(ConfigError, match="queries_at_once must be >= 1"):
+    with pytest.raises(ConfigError, match="queries_at_once must be an integer >= 1"):
         relocalizer.localize_many(scene[1], queries_at_once=0)
     with pytest.raises(ConfigError, match="queries_at_once must be an integer >= 1"):
         Relocalizer(BatchRecorder(), ExhaustiveIndex(), CentreCrop(), queries_at_once=2.5)
@@ -139,3 +139,26 @@ def test_lockstep_waits_for_every_running_member_then_answers_all_at_once():
     assert results == {0: [10, 20], 1: [30], 2: [40, 50]}
     # Round one has all three; member 1 then leaves and round two has the other two.
     assert merged == [[1, 3, 4], [2, 5]] and lockstep.calls == 2
+
+
+def test_batched_seconds_include_sampling_and_leave_the_backbone_and_rng_alone(scene, monkeypatch):
+    import time
+
+    train, test = scene
+    backbone = BatchRecorder(mc_samples=4)
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop())
+    relocalizer.fit(train)
+    sampled = relocalizer._sampled_answer
+
+    def slow(*args):
+        time.sleep(0.05)
+        return sampled(*args)
+
+    monkeypatch.setattr(relocalizer, "_sampled_answer", slow)
+    torch.manual_seed(9)
+    expected = torch.rand(2)
+    torch.manual_seed(9)
+    answers = relocalizer.localize_many(test[:4], queries_at_once=4)
+    # The group's time, sampling included, shared among its 4 queries.
+    assert all(a.seconds >= 0.05 for a in answers)
+    assert backbone.mc_samples == 4 and torch.equal(torch.rand(2), expected)

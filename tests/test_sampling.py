@@ -14,7 +14,7 @@ from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
-from relocfw.sampling import combine_samples, query_stream, random_windows
+from relocfw.sampling import combine_samples, query_streams, random_windows
 
 
 class SamplesSeen(PoseNet):
@@ -100,8 +100,8 @@ def test_crop_sampling_alone_answers_with_the_mean_of_its_windows(scene_images):
     assert answer.network_passes == 6
     # Recompute from the same windows: the seeded draw is reproducible.
     strip = Strip(test[2], 32, 1.5)
-    stream = query_stream(0, image_fingerprint(test[2]))
-    corners = random_windows(strip, answer.crop, 5, np.random.default_rng(stream))
+    windows_rng, _ = query_streams(0, image_fingerprint(test[2]))
+    corners = random_windows(strip, answer.crop, 5, windows_rng)
     windows = relocalizer._forward(torch.stack([strip.cut(c) for c in corners]))
     position, _, spread, _ = combine_samples(windows.positions, windows.quaternions)
     assert np.allclose(answer.pose.position, position)
@@ -135,3 +135,18 @@ def test_impossible_sampling_options_are_refused():
         Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), crop_samples=-1)
     with pytest.raises(ConfigError, match="retrieval_k > 0 answers with map images' poses"):
         Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), retrieval_k=1)
+
+
+def test_crop_sampling_is_refused_for_a_model_whose_window_fills_the_crop():
+    with pytest.raises(ConfigError, match="the window fills the crop"):
+        Relocalizer(SamplesSeen(crop_scale=1.0), ExhaustiveIndex(), CentreCrop(), crop_samples=4)
+    with pytest.raises(ConfigError, match="sample_seed must be an integer >= 0"):
+        Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), sample_seed=-1)
+
+
+def test_the_sampling_streams_are_not_the_crop_searchs():
+    windows, torch_seed = query_streams(0, 12345)
+    ga_stream = np.random.default_rng([0, 12345])  # what GeneticCropSearch(seed=0) draws
+    assert not np.array_equal(windows.integers(0, 2**31, 8), ga_stream.integers(0, 2**31, 8))
+    again, same_seed = query_streams(0, 12345)
+    assert same_seed == torch_seed and torch_seed != query_streams(0, 12346)[1]

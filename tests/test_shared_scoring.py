@@ -202,3 +202,32 @@ def test_re_scoring_runs_the_best_shared_windows_in_one_plain_batch(scene):
 def test_impossible_rerank_options_are_refused(scoring, rerank, message):
     with pytest.raises(ConfigError, match=message):
         Relocalizer(tiny_posenet(), KMeansIndex(k=4), CentreCrop(), scoring=scoring, rerank=rerank)
+
+
+class RecordingGA(GeneticCropSearch):
+    """The GA, remembering the crop it returned."""
+
+    def search(self, width, height, distance):
+        self.returned = super().search(width, height, distance)
+        return self.returned
+
+
+def test_re_scoring_keeps_the_searchs_choice_among_the_candidates(scene, monkeypatch):
+    search = RecordingGA(seed=0)
+    relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), search, scoring="shared", rerank=3)
+    relocalizer.fit(scene[0])
+    plain_batches = []
+    score = relocalizer._score_corners
+
+    def recording(strip, corners):
+        plain_batches.append(list(corners))
+        return score(strip, corners)
+
+    monkeypatch.setattr(relocalizer, "_score_corners", recording)
+    image = scene[1][0]
+    answer = relocalizer.localize(image)
+    strip = Strip(image, 32)
+    # One plain batch of 3 windows, the search's own choice first among them.
+    assert len(plain_batches) == 1 and len(plain_batches[0]) == 3
+    assert plain_batches[0][0] == strip.window(search.returned)
+    assert strip.window(answer.crop) in plain_batches[0]
