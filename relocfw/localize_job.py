@@ -54,10 +54,14 @@ def localize_images(
     """Localize every image; write poses.txt (TUM format) and localization.csv."""
     progress = Progress(len(images), "localizing", quiet=quiet)
     answers = []
-    group = relocalizer.queries_at_once  # images read a group at a time: memory stays flat
+    group = getattr(relocalizer, "queries_at_once", 1)  # any object with localize works
     for start in range(0, len(images), group):
+        # Images are read a group at a time, so memory stays flat however many.
         pixels = [read_rgb(path) for path in images[start : start + group]]
-        answers += relocalizer.localize_many(pixels, group)
+        if group == 1:
+            answers.append(relocalizer.localize(pixels[0]))
+        else:
+            answers += relocalizer.localize_many(pixels, group)
         progress.advance(len(pixels))
     progress.close()
     tum_lines = ["# timestamp tx ty tz qx qy qz qw (camera-to-world)"]

@@ -66,13 +66,19 @@ def test_the_thresholds_are_strict_inequalities():
 class CountingRelocalizer:
     """Answers with the identity pose; each answer's `evaluations` is its call number."""
 
-    def __init__(self):
+    def __init__(self, queries_at_once=1):
         self.seen = []
+        self.groups = []
+        self.queries_at_once = queries_at_once
 
     def localize(self, image):
         self.seen.append(int(image[0, 0, 0]))
         call = len(self.seen)
         return Localization(Pose(np.zeros(3), np.array(IDENTITY)), Crop(0, 0, 1), 0.0, call, 0.0)
+
+    def localize_many(self, images, queries_at_once):
+        self.groups.append([int(image[0, 0, 0]) for image in images])
+        return [self.localize(image) for image in images]
 
 
 def images_and_frames(count):
@@ -97,3 +103,11 @@ def test_without_warm_up_every_image_is_localized_once():
     result = evaluate("m", relocalizer, frames, images, quiet=True, warm_up=False)
     assert relocalizer.seen == [0, 1, 2]
     assert [a.evaluations for a in result.answers] == [1, 2, 3]
+
+
+def test_a_split_is_localized_in_groups_of_queries_at_once_and_in_order():
+    frames, images = images_and_frames(5)
+    relocalizer = CountingRelocalizer(queries_at_once=2)
+    result = evaluate("m", relocalizer, frames, images, quiet=True, warm_up=False)
+    assert relocalizer.groups == [[0, 1], [2, 3], [4]]
+    assert [a.evaluations for a in result.answers] == [1, 2, 3, 4, 5]
