@@ -9,6 +9,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from relocfw.evaluation import MethodResult
+from relocfw.statistics import spearman
 
 AVERAGE = "average"
 
@@ -89,10 +90,6 @@ def as_csv(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     return stream.getvalue()
 
 
-def ranks(values: np.ndarray) -> np.ndarray:
-    return np.argsort(np.argsort(values))
-
-
 def uncertainty_check(result: MethodResult, share: float = 0.25) -> dict[str, float] | None:
     """Median errors of the most and least uncertain queries (Bayesian PoseNet).
 
@@ -112,8 +109,7 @@ def uncertainty_check(result: MethodResult, share: float = 0.25) -> dict[str, fl
         "most_uncertain_median_position_m": float(np.median(positions[high])),
         "least_uncertain_median_orientation_deg": float(np.median(orientations[low])),
         "most_uncertain_median_orientation_deg": float(np.median(orientations[high])),
-        # Spearman correlation: Pearson's on ranks.
-        "spread_error_rank_correlation": float(np.corrcoef(ranks(spread), ranks(positions))[0, 1]),
+        "spread_error_rank_correlation": spearman(spread, positions),
     }
 
 
