@@ -1,4 +1,4 @@
-"""A dependency-free progress bar on stderr."""
+"""Progress of long work on stderr: a tqdm bar on a terminal, plain lines elsewhere."""
 
 from __future__ import annotations
 
@@ -6,15 +6,20 @@ import sys
 import time
 from typing import TextIO
 
+from tqdm import tqdm
+
 
 class Progress:
-    """Counts work done and redraws one line at most ten times a second.
+    """Counts work done and shows it.
+
+    On a terminal, a tqdm bar (rate, elapsed and remaining time). Anywhere else (a log
+    file, CI) one plain line per quarter of the work, not hundreds of carriage returns.
 
     Args:
         total: units of work expected.
         label: what is being done, shown before the bar.
-        quiet: draw nothing (tests, library use).
-        stream: where to draw; stderr keeps stdout clean for tables.
+        quiet: show nothing (tests, library use).
+        stream: where to write; stderr keeps stdout clean for tables.
     """
 
     def __init__(
@@ -26,11 +31,12 @@ class Progress:
         self.stream = stream or sys.stderr
         self.done = 0
         self.start = time.perf_counter()
-        self.last_draw = 0.0
         self.suffix = ""
-        # A log file or CI gets a line per quarter, not hundreds of carriage returns.
-        self.interactive = bool(getattr(self.stream, "isatty", lambda: False)())
         self.next_milestone = 0.25
+        interactive = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.bar: tqdm | None = None
+        if interactive and not quiet:
+            self.bar = tqdm(total=self.total, desc=label, file=self.stream, leave=True)
 
     def advance(self, count: int = 1, suffix: str | None = None) -> None:
         self.done += count
@@ -38,33 +44,30 @@ class Progress:
             self.suffix = suffix
         if self.quiet:
             return
-        now = time.perf_counter()
-        if self.interactive:
-            if now - self.last_draw > 0.1 or self.done >= self.total:
-                self.last_draw = now
-                self._draw(now)
+        if self.bar is not None:
+            if suffix is not None:
+                self.bar.set_postfix_str(suffix, refresh=False)
+            self.bar.update(count)
         elif self.done / self.total >= self.next_milestone:
-            self.next_milestone += 0.25
-            self._draw(now)
+            while self.done / self.total >= self.next_milestone:
+                self.next_milestone += 0.25
+            self._line()
 
-    def _draw(self, now: float) -> None:
+    def _line(self) -> None:
+        elapsed = time.perf_counter() - self.start
         fraction = min(1.0, self.done / self.total)
-        elapsed = now - self.start
         remaining = elapsed / fraction - elapsed if fraction > 0 else 0.0
-        bar = "#" * int(fraction * 24)
-        line = (
-            f"{self.label} [{bar:<24}] {self.done}/{self.total} "
-            f"{elapsed:5.0f}s elapsed, {remaining:4.0f}s left {self.suffix}"
+        self.stream.write(
+            f"{self.label}: {self.done}/{self.total} ({fraction:.0%}), {elapsed:.0f}s elapsed, "
+            f"{remaining:.0f}s left {self.suffix}".rstrip()
+            + "\n"
         )
-        self.stream.write(f"\r{line}\033[K" if self.interactive else line + "\n")
         self.stream.flush()
 
     def close(self) -> None:
         if self.quiet:
             return
-        if self.interactive:
-            self._draw(time.perf_counter())
-            self.stream.write("\n")
-        elif self.next_milestone <= 1.0:  # the last milestone was not drawn yet
-            self._draw(time.perf_counter())
-        self.stream.flush()
+        if self.bar is not None:
+            self.bar.close()
+        elif self.next_milestone <= 1.0:  # the last milestone was not written yet
+            self._line()
