@@ -114,7 +114,9 @@ def run_task(cfg: DictConfig, device: torch.device, world: World | None) -> None
         world.barrier()
     if cfg.task == "relocalize":
         method.index.check_map_size(len(train[0]))
-    checkpoint = prepare_model(cfg, method, train, device, world)
+    checkpoint = prepare_model(
+        cfg, method, train, device, world, curve=run_dir / "training_curve.png"
+    )
     if cfg.task == "train":
         jobs.write_skipped(dataset, run_dir)
         return

@@ -115,7 +115,9 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
                 method_cfg, choices = plans[seed, scene, name]
                 method = build_method(method_cfg, choices, label=rows[name])
                 method.index.check_map_size(len(train[0]))
-                prepare_model(method_cfg, method, train, device)
+                # One curve per distinct model: rows sharing a model share its file.
+                seed_dir = run_dir / f"seed_{seed}" if len(seeds) > 1 else run_dir
+                prepare_model(method_cfg, method, train, device, curve_dir=seed_dir)
                 relocalizer = method.relocalizer(device, int(cfg.query_batch_size))
                 result, features = jobs.run_method(rows[name], relocalizer, train, test, quiet)
                 results[seed][label][rows[name]] = result

@@ -39,7 +39,7 @@ def run_diagnose(cfg: DictConfig, device: torch.device) -> None:
     quiet = bool(cfg.quiet)
     train = jobs.load_split(dataset, "train", quiet)
     method.index.check_map_size(len(train[0]))
-    checkpoint = prepare_model(cfg, method, train, device)
+    checkpoint = prepare_model(cfg, method, train, device, curve=run_dir / "training_curve.png")
     test = jobs.load_split(dataset, "test", quiet)
     jobs.write_skipped(dataset, run_dir)
     relocalizer = method.relocalizer(device, int(cfg.query_batch_size))

@@ -14,8 +14,10 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from relocfw import jobs
+from relocfw.compare_job import safe_name
 from relocfw.distributed import World
 from relocfw.errors import ConfigError, RelocfwError
+from relocfw.figures import training_curve
 from relocfw.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.options import integer_at_least
 from relocfw.pipeline import (
@@ -66,6 +68,7 @@ def build(cfg: DictConfig, group: str, choice: str) -> Any:
 
 def train_settings(cfg: DictConfig) -> TrainSettings:
     values = OmegaConf.to_container(cfg.train, resolve=True)
+    values.pop("log", None)  # where curves go, not how the model trains: not in the key
     try:
         for key in ("auxiliary_weights", "learned_init"):
             if key in values:
@@ -253,7 +256,26 @@ def prepare_model(
     train: tuple,
     device: torch.device,
     world: World | None = None,
+    curve: Path | None = None,
+    curve_dir: Path | None = None,
 ) -> Path:
+    """Train the method's network or reuse its checkpoint; print which.
+
+    Args:
+        curve: where to draw the run's training curve (from the checkpoint's history
+            when it is reused). With train.log=tensorboard, the events of a run that
+            trains go to a `tensorboard/` folder beside it.
+        curve_dir: instead of `curve`, a folder: the curve is then
+            `training_curve_<checkpoint>.png` there, one file per distinct model.
+    """
+    log = str(cfg.train.get("log", "none"))
+    if log not in ("none", "tensorboard"):
+        raise ConfigError(f"train.log must be none or tensorboard, got {log!r}")
+    log_dir = None
+    if log == "tensorboard" and curve is not None:
+        log_dir = curve.parent / "tensorboard"
+    elif log == "tensorboard" and curve_dir is not None:  # several models: one run each
+        log_dir = curve_dir / "tensorboard" / safe_name(method.label)
     checkpoint, training = jobs.train_or_reuse(
         method.backbone,
         *train,
@@ -263,9 +285,15 @@ def prepare_model(
         device,
         bool(cfg.quiet),
         world,
+        log_dir,
     )
     if world is not None and not world.is_main:
         return checkpoint
+    if curve is None and curve_dir is not None:
+        curve = curve_dir / f"training_curve_{checkpoint.stem}.png"
+    if curve is not None:
+        history = training.history or {"loss": training.losses}  # an older checkpoint
+        training_curve(history, curve, f"({checkpoint.name})")
     if training.reused:
         how = "reused"
     elif training.resumed_from:

@@ -175,3 +175,37 @@ def uncertainty_against_error(
     figure.suptitle(f"{result.method}: uncertainty against error {title}".strip())
     figure.tight_layout()
     return save(figure, path)
+
+
+def training_curve(history: dict[str, list[float]], path: Path, title: str = "") -> Path:
+    """Per-step losses of a training run: the total and each head's (log scale), the
+    main head's errors, and the learning rate with any learned loss weights."""
+    figure, (losses, errors, schedule) = plt.subplots(1, 3, figsize=(15, 4))
+    steps = np.arange(1, len(history.get("loss", [])) + 1)
+    for name in ("loss", "main", "aux1", "aux2"):
+        if history.get(name):
+            losses.plot(steps, history[name], label=name, linewidth=0.8)
+    losses.set_yscale("log")
+    losses.set_title("loss (total and weighted per head)", fontsize=9)
+    losses.legend(fontsize=8)
+    if history.get("main_position_m"):
+        errors.plot(steps, history["main_position_m"], label="position (m)", linewidth=0.8)
+        errors.plot(steps, history["main_orientation"], label="||q - q^||", linewidth=0.8)
+        errors.legend(fontsize=8)
+    errors.set_title("main head's batch errors", fontsize=9)
+    if history.get("lr"):
+        schedule.plot(steps, history["lr"], label="learning rate", color="black")
+        schedule.set_yscale("log")
+    weights = schedule.twinx()
+    for name in ("s_position", "s_orientation"):
+        if history.get(name):
+            weights.plot(steps, history[name], label=name, linewidth=0.8)
+    if history.get("s_position"):
+        weights.legend(fontsize=8, loc="lower left")
+        weights.set_ylabel("learned s (log variance)")
+    schedule.set_title("learning rate and learned loss weights", fontsize=9)
+    for axis in (losses, errors, schedule):
+        axis.set_xlabel("step")
+    figure.suptitle(f"training {title}".strip())
+    figure.tight_layout()
+    return save(figure, path)

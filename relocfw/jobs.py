@@ -75,6 +75,7 @@ def train_or_reuse(
     device: torch.device,
     quiet: bool,
     world: World | None = None,
+    log_dir: Path | None = None,
 ) -> tuple[Path, TrainingRun]:
     """Train the backbone, or load the checkpoint of the same model trained before.
 
@@ -96,7 +97,7 @@ def train_or_reuse(
     data = TrainingImages(
         images, [f.pose for f in frames], backbone.input_size, settings.crop_scale
     )
-    run = train_backbone(backbone, data, settings, checkpoint, key, device, quiet, world)
+    run = train_backbone(backbone, data, settings, checkpoint, key, device, quiet, world, log_dir)
     return checkpoint, run
 
 

@@ -68,12 +68,27 @@ def posenet_loss(
     true_quaternions: torch.Tensor,
     weighting: nn.Module,
     auxiliary_weights: Sequence[float] = (0.3, 0.3),
+    parts: dict[str, torch.Tensor] | None = None,
 ) -> torch.Tensor:
-    """Weighted sum over heads (paper: 0.3, 0.3 for the auxiliaries, 1 for the main)."""
-    heads = [(1.0, output.positions, output.quaternions)]
-    heads += [(w, p, q) for w, (p, q) in zip(auxiliary_weights, output.auxiliary, strict=False)]
+    """Weighted sum over heads (paper: 0.3, 0.3 for the auxiliaries, 1 for the main).
+
+    Args:
+        parts: if given, filled with each head's weighted loss ("main", "aux1",
+            "aux2") and the main head's position (m) and orientation errors, detached,
+            for training curves.
+    """
+    heads = [("main", 1.0, output.positions, output.quaternions)]
+    heads += [
+        (f"aux{i + 1}", w, p, q)
+        for i, (w, (p, q)) in enumerate(zip(auxiliary_weights, output.auxiliary, strict=False))
+    ]
     total = torch.zeros((), device=output.positions.device)
-    for weight, positions, quaternions in heads:
+    for name, weight, positions, quaternions in heads:
         errors = head_errors(positions, quaternions, true_positions, true_quaternions)
-        total = total + weight * weighting(*errors)
+        head_loss = weight * weighting(*errors)
+        total = total + head_loss
+        if parts is not None:
+            parts[name] = head_loss.detach()
+            if name == "main":
+                parts["main_position_m"], parts["main_orientation"] = (e.detach() for e in errors)
     return total

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from functools import cached_property
 from pathlib import Path
 
@@ -118,6 +118,9 @@ class TrainingRun:
     losses: list[float]
     reused: bool
     resumed_from: int = 0  # the step an interrupted run was continued from, 0 if none
+    # Per step: "loss", "lr", each head's weighted loss, the main head's errors and,
+    # with train.loss=learned, "s_position" and "s_orientation" (training curves).
+    history: dict[str, list[float]] = field(default_factory=dict)
 
 
 class TrainingImages:
@@ -207,8 +210,12 @@ def train_backbone(
     device: str | torch.device = "cpu",
     quiet: bool = False,
     world: World | None = None,
+    log_dir: Path | None = None,
 ) -> TrainingRun:
     """Train `backbone` in place; returns the loss of every step.
+
+    `log_dir`: also write every step's losses, learning rate and learned loss weights
+    there as TensorBoard events (needs the `tensorboard` package).
 
     With a checkpoint path: a complete checkpoint with the same key is loaded instead
     of training (the same model asked for again); an incomplete one is resumed; a new
@@ -248,6 +255,7 @@ def train_backbone(
     weighting = make_weighting(settings).to(device)
     optimizer = make_optimizer([backbone, weighting], settings)
     losses: list[float] = []
+    history: dict[str, list[float]] = {}
     step = resumed_from = 0
     if checkpoint is not None and writes:
         remove_stale_temporaries(checkpoint)
@@ -264,12 +272,15 @@ def train_backbone(
                 "delete it or choose another cache_dir"
             ) from error
         if state["complete"]:
-            return TrainingRun(list(state["losses"]), reused=True)
+            return TrainingRun(
+                list(state["losses"]), reused=True, history=dict(state.get("history", {}))
+            )
         optimizer.load_state_dict(state["optimizer"])
         generator.set_state(state["generator"])
         # Every process's dropout masks continue as they would have.
         restore_own_rng_state(state["rng"], world, device, checkpoint)
         step, losses = state["iteration"], list(state["losses"])
+        history = {k: list(v) for k, v in state.get("history", {}).items()}
         resumed_from = step
 
     def save(complete: bool) -> None:
@@ -288,11 +299,13 @@ def train_backbone(
                 "generator": generator.get_state(),
                 "rng": rng,  # per rank: each process's CPU (and GPU) stream
                 "losses": losses,
+                "history": history,
                 "settings": asdict(settings),
             }
             save_atomic(payload, checkpoint)
 
     model = data_parallel(backbone, world, device)
+    events = tensorboard_writer(log_dir) if log_dir is not None and writes else None
     backbone.train()
     progress = Progress(settings.iterations, "training", quiet=quiet)
     progress.advance(step)
@@ -306,12 +319,14 @@ def train_backbone(
             group["lr"] = learning_rate(settings, step)
         inputs = to_network_input(images.to(device)).contiguous(memory_format=memory_format)
         output = model(inputs)
+        parts: dict[str, torch.Tensor] = {}
         loss = posenet_loss(
             output,
             true_positions.to(device),
             true_quaternions.to(device),
             weighting,
             settings.auxiliary_weights,
+            parts,
         )
         batch_loss = loss if world is None else world.mean(loss)
         if not torch.isfinite(batch_loss):
@@ -325,13 +340,34 @@ def train_backbone(
         optimizer.step()
         step += 1
         losses.append(batch_loss.item())
+        record = {"loss": losses[-1], "lr": optimizer.param_groups[0]["lr"]}
+        record |= {name: float(value) for name, value in parts.items()}
+        record |= {name: float(p.detach()) for name, p in weighting.named_parameters()}
+        for name, value in record.items():
+            history.setdefault(name, []).append(value)
+            if events is not None:
+                events.add_scalar(f"train/{name}", value, step)
         recent = float(np.mean(losses[-20:]))
         progress.advance(1, suffix=f"loss {recent:.3f}")
         if step % settings.checkpoint_every == 0 and step < settings.iterations:
             save(complete=False)
     progress.close()
+    if events is not None:
+        events.close()
     backbone.eval()
     save(complete=True)
     if world is not None:
         world.barrier()  # the checkpoint is complete before any process moves on
-    return TrainingRun(losses, reused=False, resumed_from=resumed_from)
+    return TrainingRun(losses, reused=False, resumed_from=resumed_from, history=history)
+
+
+def tensorboard_writer(log_dir: Path):  # noqa: ANN201 - torch's SummaryWriter, imported late
+    """A TensorBoard event writer in `log_dir`; ConfigError without the package."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError as error:
+        raise ConfigError(
+            "train.log=tensorboard needs the tensorboard package: "
+            'pip install "relocfw[tensorboard]"'
+        ) from error
+    return SummaryWriter(log_dir=str(log_dir))

@@ -34,10 +34,13 @@ def cache(tmp_path_factory):
 
 def test_main_job_writes_results_and_reuses_the_model(tmp_path, cache):
     run_dir = tmp_path / "run"
-    result = relocfw([*TINY_OVERRIDES, f"hydra.run.dir={run_dir}"], tmp_path, cache)
+    args = [*TINY_OVERRIDES, "train.log=tensorboard", f"hydra.run.dir={run_dir}"]
+    result = relocfw(args, tmp_path, cache)
     assert result.returncode == 0, result.stderr
     for row in ("mean training pose", "posenet (centre crop)", "ga + kmeans (k=4)"):
         assert row in result.stdout
+    assert (run_dir / "training_curve.png").is_file()
+    assert list((run_dir / "tensorboard").glob("events.out.tfevents.*"))
     summary = json.loads((run_dir / "summary.json").read_text())
     assert [s["method"] for s in summary][-1] == "ga + kmeans (k=4)"
     assert all(s["queries"] == 4 for s in summary)
@@ -58,6 +61,7 @@ def test_main_job_writes_results_and_reuses_the_model(tmp_path, cache):
     assert again.returncode == 0, again.stderr
     assert "sweep + exhaustive" in again.stdout
     assert "(reused)" in again.stdout and "(trained)" in result.stdout
+    assert (tmp_path / "r2" / "training_curve.png").is_file()  # drawn from the checkpoint
     assert checkpoints[0].stat().st_mtime_ns == stamp
     assert len(list((cache / "checkpoints").glob("*.pt"))) == 1
 
@@ -142,6 +146,10 @@ def test_compare_of_the_dropout_variants(tmp_path, cache):
         (["crop.population=1"], "population must be at least 2"),
         (["dataset=sevenscenes", "dataset.root=/no/such/dir"], "/no/such/dir"),
         (["train.optimizer=rmsprop"], "train.optimizer"),
+        (["train.log=wandb"], "train.log must be none or tensorboard"),
+        (["crop_samples=4", "train.crop_scale=1.0"], "the window fills the crop"),
+        (["rerank=3"], "with scoring=plain every candidate is already plain"),
+        (["queries_at_once=0"], "queries_at_once must be at least 1"),
         (["task=nosuch"], "task must be one of"),
         (["device=cuda:7"], "device"),
         (["task=compare", "compare.reference=Nobody"], "compare.reference"),
