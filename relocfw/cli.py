@@ -3,6 +3,7 @@ the only modules that see a DictConfig."""
 
 from __future__ import annotations
 
+import importlib
 import sys
 from pathlib import Path
 
@@ -86,6 +87,27 @@ def run(cfg: DictConfig) -> None:
         run_task(cfg, device, world)
     finally:
         leave_torchrun(world)
+    note = units_note(cfg)
+    if note and cfg.task in ("relocalize", "compare", "diagnose"):
+        jobs.note_units(Path(HydraConfig.get().runtime.output_dir), note)
+        print(f"note: {note}")
+
+
+def units_note(cfg: DictConfig) -> str:
+    """What reports must say when the dataset's positions are not in metres.
+
+    A dataset class says so with `metric = False` and a `units_note` (COLMAP models
+    have no scale of their own); "" for metric datasets.
+    """
+    target = str(cfg.dataset.get("_target_", ""))
+    module, _, name = target.rpartition(".")
+    try:
+        dataset_class = getattr(importlib.import_module(module), name)
+    except (ImportError, AttributeError, ValueError):
+        return ""
+    if getattr(dataset_class, "metric", True):
+        return ""
+    return str(getattr(dataset_class, "units_note", "positions are not in metres"))
 
 
 def run_task(cfg: DictConfig, device: torch.device, world: World | None) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -176,3 +177,31 @@ def relocalize(
     print(write_results(results, run_dir))
     print(f"\nresults: {Path(run_dir) / 'results.csv'}, {Path(run_dir) / 'summary.json'}")
     return results
+
+
+# Reports that say in words what their numbers are (see note_units).
+TEXT_REPORTS = ("table*.txt", "comparison.md", "crop_seeds.md", "diagnose.md")
+JSON_REPORTS = ("summary*.json", "comparison.json", "diagnose.json")
+
+
+def note_units(run_dir: Path, note: str) -> list[Path]:
+    """Say `note` (e.g. that positions are not in metres) in every report of a run.
+
+    The Markdown and text tables get it as their first line, the JSON reports as a
+    "units_note" key (in every row of a list). Returns the files changed.
+    """
+    changed = []
+    for pattern in TEXT_REPORTS:
+        for path in sorted(Path(run_dir).rglob(pattern)):
+            write_text_atomic(f"Note: {note}.\n\n" + path.read_text(), path)
+            changed.append(path)
+    for pattern in JSON_REPORTS:
+        for path in sorted(Path(run_dir).rglob(pattern)):
+            report = json.loads(path.read_text())
+            if isinstance(report, list):
+                report = [{**row, "units_note": note} for row in report]
+            else:
+                report = {"units_note": note, **report}
+            write_text_atomic(strict_json(report), path)
+            changed.append(path)
+    return changed

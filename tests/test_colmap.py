@@ -5,6 +5,7 @@ layout here, independently of relocfw's reader and writer, so the two cannot sha
 mistake unnoticed.
 """
 
+import json
 import struct
 from pathlib import Path
 
@@ -490,6 +491,11 @@ def test_cli_relocalizes_a_colmap_project(tmp_path):
     assert result.returncode == 0, result.stderr
     rows = (run_dir / "results.csv").read_text().splitlines()
     assert len(rows) == 1 + 3 * 4 and all("seq3/" in row for row in rows[1:])
+    # A COLMAP model has no scale of its own: every report says so.
+    assert UNITS_NOTE in result.stdout
+    assert (run_dir / "table.txt").read_text().startswith(f"Note: {UNITS_NOTE}.")
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert all(row["units_note"] == UNITS_NOTE for row in summary)
 
     (tmp_path / "project" / "images" / "seq1" / "03.png").unlink()
     broken = relocfw(

@@ -15,7 +15,9 @@ Layouts (COLMAP's "Output Format" documentation; binary is little endian):
                   uint32 camera id, NAME + NUL, uint64 n, n x (float64 x, float64 y,
                   uint64 point3D id)
 The 2-D observations and points3D are passed over: relocalization needs only where
-each image was taken.
+each image was taken. Newer COLMAP versions also write rigs and frames files; they
+still write each registered image's own world-to-camera pose in images.*, so those
+are not needed either (checked with files written by pycolmap 4.2.1).
 """
 
 from __future__ import annotations
@@ -31,8 +33,9 @@ from pathlib import Path
 from relocfw.data.on_error import OnError
 from relocfw.errors import DataError
 
-# Model id -> (name, number of parameters). cameras.bin stores only the id, so a model
-# missing here cannot be read past (cameras.txt names its model, so any model reads).
+# Model id -> (name, number of parameters), checked against pycolmap 4.2.1.
+# cameras.bin stores only the id, so a model missing here cannot be read past;
+# cameras.txt names its model and lists its parameters, so any model reads there.
 CAMERA_MODELS: dict[int, tuple[str, int]] = {
     0: ("SIMPLE_PINHOLE", 3),
     1: ("PINHOLE", 4),
@@ -46,6 +49,12 @@ CAMERA_MODELS: dict[int, tuple[str, int]] = {
     9: ("RADIAL_FISHEYE", 5),
     10: ("THIN_PRISM_FISHEYE", 12),
     11: ("RAD_TAN_THIN_PRISM_FISHEYE", 16),
+    12: ("SIMPLE_DIVISION", 4),
+    13: ("DIVISION", 5),
+    14: ("SIMPLE_FISHEYE", 3),
+    15: ("FISHEYE", 4),
+    16: ("EUCM", 6),
+    17: ("EQUIRECTANGULAR", 2),
 }
 MODEL_IDS = {name: (model_id, count) for model_id, (name, count) in CAMERA_MODELS.items()}
 
@@ -210,8 +219,9 @@ def read_cameras_text(path: Path) -> list[ColmapCamera]:
 
 
 def _number_text(value: float) -> str:
-    # repr is the shortest text that reads back to the same float: lossless round trips.
-    return repr(float(value))
+    # repr is the shortest text that reads back to the same float: lossless round trips
+    # (+ 0.0 writes -0.0 as 0.0).
+    return repr(float(value) + 0.0)
 
 
 def write_images_text(path: Path, images: Sequence[ColmapImage]) -> None:
