@@ -24,18 +24,21 @@ from relocfw.cli_methods import (
     prepare_model,
 )
 from relocfw.distributed import World
-from relocfw.errors import ConfigError, RelocfwError
+from relocfw.errors import ConfigError, DataError, RelocfwError
 from relocfw.hydra_plugins import install as install_plugin_discovery
 from relocfw.hydra_plugins import options_help
 from relocfw.localize_job import find_images, localize_images
 from relocfw.model_file import save_model
+from relocfw.onnx_backbone import check_onnx_scoring, onnx_relocalizer
+from relocfw.onnx_export import export_onnx, onnx_path, require
 from relocfw.options import integer_at_least
 from relocfw.pipeline import Relocalizer, check_rerank, check_sampling
 from relocfw.plugin_discovery import conflicts, discover_options
 from relocfw.sampling import configured_samples
 from relocfw.torchrun import join_torchrun, leave_torchrun
 
-TASKS = ("relocalize", "train", "compare", "localize", "plugins", "diagnose")
+TASKS = ("relocalize", "train", "compare", "localize", "plugins", "diagnose", "export")
+BACKENDS = ("torch", "onnx")  # what runs the network of task=localize
 
 
 def check_common(cfg: DictConfig) -> torch.device:
@@ -45,6 +48,10 @@ def check_common(cfg: DictConfig) -> torch.device:
     if unknown:
         raise ConfigError(f"baselines: unknown {sorted(unknown)}; known: {list(jobs.BASELINES)}")
     integer_at_least("query_batch_size", cfg.query_batch_size, 1)
+    if cfg.backend not in BACKENDS:
+        raise ConfigError(f"backend must be one of {', '.join(BACKENDS)}, got {cfg.backend!r}")
+    if cfg.backend != "torch" and cfg.task != "localize":
+        raise ConfigError(f"backend={cfg.backend} applies to task=localize only")
     return pick_device(cfg.device)
 
 
@@ -53,12 +60,59 @@ def cli_overrides() -> set[str]:
     return {o.split("=", 1)[0].lstrip("+~") for o in HydraConfig.get().overrides.task}
 
 
-def run_localize(cfg: DictConfig, device: torch.device) -> None:
+def model_file(cfg: DictConfig) -> Path:
     if not cfg.model:
         raise ConfigError("model is not set: pass model=FILE (a model.relocfw from a run)")
-    relocalizer = Relocalizer.load(
-        Path(cfg.model), device, int(cfg.query_batch_size), str(cfg.scoring)
+    return Path(cfg.model).expanduser()
+
+
+def run_export(cfg: DictConfig) -> None:
+    model = model_file(cfg)
+    require("onnx", "task=export")
+    require("onnxruntime", "task=export")
+    relocalizer = Relocalizer.load(model, "cpu")
+    samples = configured_samples(relocalizer.backbone)
+    if samples > 0:
+        print(
+            f"note: the model samples backbone.mc_samples={samples} Monte Carlo dropout "
+            "masks; the ONNX network is the dropout-free one (mc_samples=0)"
+        )
+    out = onnx_path(model, cfg.export.out)
+    differences = export_onnx(relocalizer.backbone, out)
+    largest = max(differences.values())
+    size = relocalizer.backbone.input_size
+    print(
+        f"ONNX network: {out}  (images [B,3,{size},{size}] in [0,1] -> positions, "
+        f"quaternions, features; onnxruntime matches torch to {largest:.1e})"
     )
+    where = f" export.out={out}" if cfg.export.out else ""
+    print(f"localize with it: relocfw task=localize model={model} images=... backend=onnx{where}")
+
+
+def load_for_localize(cfg: DictConfig, device: torch.device) -> Relocalizer:
+    """The model file's Relocalizer, its network run by torch or onnxruntime (backend)."""
+    model = model_file(cfg)
+    batch, scoring = int(cfg.query_batch_size), str(cfg.scoring)
+    if cfg.backend == "torch":
+        return Relocalizer.load(model, device, batch, scoring)
+    check_onnx_scoring(scoring)
+    if device.type != "cpu":
+        raise ConfigError(
+            f"backend=onnx runs the network with onnxruntime on the CPU; drop device={device} "
+            "(or use backend=torch)"
+        )
+    require("onnxruntime", "backend=onnx")
+    network = onnx_path(model, cfg.export.out)
+    if not network.is_file():
+        where = f" export.out={cfg.export.out}" if cfg.export.out else ""
+        raise DataError(
+            f"ONNX network not found: {network}; run relocfw task=export model={model}{where} first"
+        )
+    return onnx_relocalizer(Relocalizer.load(model, device, batch, scoring), network)
+
+
+def run_localize(cfg: DictConfig, device: torch.device) -> None:
+    relocalizer = load_for_localize(cfg, device)
     # Query-time options from the command line, over what the model file kept.
     relocalizer.queries_at_once = integer_at_least("queries_at_once", cfg.queries_at_once, 1)
     given = cli_overrides()
@@ -116,6 +170,9 @@ def run_task(cfg: DictConfig, device: torch.device, world: World | None) -> None
         return
     if cfg.task == "localize":
         run_localize(cfg, device)
+        return
+    if cfg.task == "export":
+        run_export(cfg)
         return
     if cfg.task == "diagnose":
         run_diagnose(cfg, device)

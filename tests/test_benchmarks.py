@@ -151,3 +151,22 @@ def test_cost_scaling(tmp_path, tiny_model, monkeypatch):
     )
     assert [r["population"] for r in report["ga_budgets"]] == [10, 20, 10, 20, 40]
     assert {r["map_descriptors"] for r in report["map_sizes"]} == {20, 40}
+
+
+def test_onnx_cost(tmp_path):
+    pytest.importorskip("onnxruntime", reason="relocfw[onnx] not installed")
+    report = run_script(
+        "onnx_cost.py",
+        tmp_path / "o.json",
+        "--queries",
+        "2",
+        "--warmup",
+        "1",
+        "--map-images",
+        "4",
+        "--input-size",
+        "32",
+    )
+    assert [r["backend"] for r in report["rows"]] == ["torch", "onnx"]
+    assert all(r["ms_per_query"] > 0 for r in report["rows"])
+    assert report["max_position_difference_m"] < 1e-4  # the same pose from both

@@ -1,0 +1,285 @@
+"""ONNX export (task=export) and the onnxruntime backend (task=localize backend=onnx)."""
+
+import csv
+import importlib
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+
+from relocfw import cli, onnx_export
+from relocfw.data.frames import read_images
+from relocfw.data.sevenscenes import load_sevenscenes
+from relocfw.errors import ConfigError, DataError
+from relocfw.imaging import Strip, to_network_input
+from relocfw.model_file import save_model
+from relocfw.onnx_backbone import OnnxBackbone, onnx_relocalizer
+from relocfw.onnx_export import export_onnx, onnx_path
+from relocfw.pipeline import Relocalizer
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.plugins.exhaustive_index import ExhaustiveIndex
+from relocfw.plugins.ga_crop import GeneticCropSearch
+from relocfw.plugins.kmeans_index import KMeansIndex
+from relocfw.plugins.posenet import PoseNet
+from tests.conftest import TINY_OVERRIDES
+from tests.test_cli import relocfw
+
+# relocfw imports neither package until it needs one, so the skips can follow the imports.
+pytest.importorskip("onnx", reason='onnx not installed (pip install "relocfw[onnx]")')
+ort = pytest.importorskip("onnxruntime", reason='onnxruntime not installed ("relocfw[onnx]")')
+
+TOLERANCE = 1e-4
+
+
+def tiny_posenet(seed=0, **options):
+    torch.manual_seed(seed)
+    backbone = PoseNet(input_size=32, width=0.125, feature_dim=32, **options).eval()
+    # A frame away from the origin, so the graph must map positions back itself.
+    backbone.set_position_normalisation(np.array([1.0, -2.0, 3.0]), 2.5)
+    backbone.set_crop_scale(1.142857)
+    return backbone
+
+
+def tiny_efficientnet():
+    pytest.importorskip("efficientnet_lite_pytorch", reason="relocfw[efficientnet] not installed")
+    from relocfw.plugins.efficientnet_lite import EfficientNetLite0
+
+    torch.manual_seed(0)
+    backbone = EfficientNetLite0(pretrained=False, input_size=32, feature_dim=32).eval()
+    backbone.set_position_normalisation(np.array([1.0, -2.0, 3.0]), 2.5)
+    return backbone
+
+
+@pytest.mark.parametrize("make", [tiny_posenet, tiny_efficientnet], ids=["posenet", "efficientnet"])
+def test_onnx_network_answers_as_torch(tmp_path, make):
+    backbone = make()
+    path = tmp_path / "net.onnx"
+    differences = export_onnx(backbone, path)
+    assert set(differences) == {"positions", "quaternions", "features"}
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    (image_input,) = session.get_inputs()
+    assert image_input.name == "images" and image_input.shape[1:] == [3, 32, 32]
+    assert isinstance(image_input.shape[0], str)  # the batch is dynamic
+    assert [o.name for o in session.get_outputs()] == ["positions", "quaternions", "features"]
+    metadata = session.get_modelmeta().custom_metadata_map
+    assert metadata["relocfw.input_size"] == "32"
+    assert float(metadata["relocfw.crop_scale"]) == pytest.approx(float(backbone.crop_scale))
+    # Five images: neither the traced batch (2) nor the check batch (3).
+    images = torch.rand(5, 3, 32, 32, generator=torch.Generator().manual_seed(1))
+    positions, quaternions, features = session.run(None, {"images": images.numpy()})
+    with torch.no_grad():
+        expected = backbone(images)
+    assert np.allclose(positions, expected.positions.numpy(), atol=TOLERANCE)
+    assert np.allclose(quaternions, expected.quaternions.numpy(), atol=TOLERANCE)
+    assert np.allclose(features, expected.features.numpy(), atol=TOLERANCE)
+    assert features.shape == (5, 32)
+    assert np.allclose(np.linalg.norm(quaternions, axis=1), 1.0, atol=1e-5)
+
+
+def test_export_is_the_dropout_free_network_and_leaves_the_backbone_as_it_was(tmp_path):
+    backbone = tiny_posenet(mc_samples=5, dropout_variant="kendall")
+    export_onnx(backbone, tmp_path / "net.onnx")
+    assert backbone.mc_samples == 5 and not backbone.training
+    session = ort.InferenceSession(str(tmp_path / "net.onnx"), providers=["CPUExecutionProvider"])
+    images = torch.rand(3, 3, 32, 32)
+    positions, _, features = session.run(None, {"images": images.numpy()})
+    backbone.mc_samples = 0
+    with torch.no_grad():
+        expected = backbone(images)
+    assert np.allclose(positions, expected.positions.numpy(), atol=TOLERANCE)
+    assert np.allclose(features, expected.features.numpy(), atol=TOLERANCE)
+
+
+def test_a_failed_check_writes_nothing(tmp_path, monkeypatch):
+    path = tmp_path / "net.onnx"
+    path.write_bytes(b"the previous export")
+    monkeypatch.setattr(onnx_export, "TOLERANCE", -1.0)  # no answer can pass
+    with pytest.raises(DataError, match="not written"):
+        export_onnx(tiny_posenet(), path)
+    assert path.read_bytes() == b"the previous export"
+    assert [p.name for p in tmp_path.iterdir()] == ["net.onnx"]  # no temporary left
+
+
+def test_missing_packages_name_the_extra(tmp_path, monkeypatch):
+    real = importlib.import_module
+
+    def without_onnx(name, *args):
+        if name.startswith("onnx"):
+            raise ImportError(name)
+        return real(name, *args)
+
+    monkeypatch.setattr(onnx_export.importlib, "import_module", without_onnx)
+    with pytest.raises(ConfigError, match=r'pip install "relocfw\[onnx\]"'):
+        export_onnx(tiny_posenet(), tmp_path / "net.onnx")
+    with pytest.raises(ConfigError, match=r"backend=onnx needs the package 'onnxruntime'"):
+        OnnxBackbone(tmp_path / "net.onnx", tiny_posenet())
+
+
+def test_an_export_of_other_weights_is_refused(tmp_path):
+    export_onnx(tiny_posenet(seed=0), tmp_path / "net.onnx")
+    with pytest.raises(DataError, match="other weights"):
+        OnnxBackbone(tmp_path / "net.onnx", tiny_posenet(seed=1))
+    with pytest.raises(DataError, match="ONNX network not found"):
+        OnnxBackbone(tmp_path / "none.onnx", tiny_posenet())
+
+
+@pytest.fixture
+def scene_images(tiny_scene):
+    train = load_sevenscenes(tiny_scene, None, "train")
+    test = load_sevenscenes(tiny_scene, None, "test")
+    return read_images(train, quiet=True), read_images(test, quiet=True)
+
+
+def test_onnx_backbone_gives_the_torch_crops_and_poses(tmp_path, scene_images):
+    train, test = scene_images
+    backbone = tiny_posenet()
+    relocalizer = Relocalizer(backbone, KMeansIndex(k=4), GeneticCropSearch(seed=0), batch_size=5)
+    features = relocalizer.fit(train)
+    export_onnx(backbone, tmp_path / "net.onnx")
+    swapped = onnx_relocalizer(relocalizer, tmp_path / "net.onnx")
+    assert isinstance(swapped.backbone, OnnxBackbone) and swapped.index is relocalizer.index
+    assert swapped.crop_scale == pytest.approx(relocalizer.crop_scale)
+    assert np.allclose(swapped.describe(train), features, atol=TOLERANCE)  # the map's view
+    for image in test:
+        want, got = relocalizer.localize(image), swapped.localize(image)
+        assert got.crop == want.crop and got.evaluations == want.evaluations
+        assert np.allclose(got.pose.position, want.pose.position, atol=TOLERANCE)
+        assert np.allclose(got.pose.quaternion, want.pose.quaternion, atol=TOLERANCE)
+    # Queries localized together share forward passes through the session as well.
+    together = swapped.localize_many(test, queries_at_once=2)
+    assert [a.crop for a in together] == [relocalizer.localize(i).crop for i in test]
+
+
+def test_onnx_relocalizer_refuses_what_the_graph_cannot_do(tmp_path):
+    backbone = tiny_posenet()
+    export_onnx(backbone, tmp_path / "net.onnx")
+    shared = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop(), scoring="shared")
+    with pytest.raises(ConfigError, match="cannot use scoring=shared"):
+        onnx_relocalizer(shared, tmp_path / "net.onnx")
+    backbone.mc_samples = 4
+    sampled = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop())
+    with pytest.raises(ConfigError, match="mc_samples=4"):
+        onnx_relocalizer(sampled, tmp_path / "net.onnx")
+
+
+def test_export_task_says_monte_carlo_sampling_is_left_out(tmp_path, capsys):
+    backbone = tiny_posenet(mc_samples=3)
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop())
+    relocalizer.fit([np.zeros((36, 48, 3), np.uint8), np.full((36, 48, 3), 200, np.uint8)])
+    options = {
+        "backbone": {"input_size": 32, "width": 0.125, "feature_dim": 32, "mc_samples": 3},
+        "index": {},
+        "crop": {},
+    }
+    model = save_model(tmp_path / "model.relocfw", relocalizer, options, {})
+    cfg = OmegaConf.create({"model": str(model), "export": {"out": None}, "backend": "onnx"})
+    cli.run_export(cfg)
+    printed = capsys.readouterr().out
+    assert "mc_samples=3" in printed and "dropout-free" in printed
+    assert onnx_path(model) == tmp_path / "model.relocfw.onnx" and onnx_path(model).is_file()
+    cfg.scoring, cfg.query_batch_size = "plain", 8
+    with pytest.raises(ConfigError, match="mc_samples=3"):  # ... but localize cannot sample
+        cli.load_for_localize(cfg, torch.device("cpu"))
+
+
+@pytest.fixture(scope="module")
+def trained_model(tmp_path_factory):
+    home = tmp_path_factory.mktemp("onnx-run")
+    result = relocfw([*TINY_OVERRIDES, f"hydra.run.dir={home / 'run'}"], home, home / "cache")
+    assert result.returncode == 0, result.stderr
+    scene = next((home / "cache" / "scenes").iterdir())
+    return home, home / "run" / "model.relocfw", scene / "seq-03"
+
+
+def localization_rows(run_dir):
+    with open(run_dir / "localization.csv") as stream:
+        return list(csv.DictReader(stream))
+
+
+def test_cli_export_then_localize_with_onnxruntime(trained_model):
+    home, model, images = trained_model
+    exported = relocfw(["task=export", f"model={model}"], home, home / "cache")
+    assert exported.returncode == 0, exported.stderr
+    assert f"ONNX network: {model}.onnx" in exported.stdout
+    runs = {}
+    for backend in ("torch", "onnx"):
+        runs[backend] = home / f"localize-{backend}"
+        result = relocfw(
+            [
+                "task=localize",
+                f"model={model}",
+                f"images={images}/*.png",
+                f"backend={backend}",
+                f"hydra.run.dir={runs[backend]}",
+                "quiet=true",
+            ],
+            home,
+            home / "cache",
+        )
+        assert result.returncode == 0, result.stderr
+    torch_poses = np.loadtxt(runs["torch"] / "poses.txt")
+    onnx_poses = np.loadtxt(runs["onnx"] / "poses.txt")
+    assert torch_poses.shape == onnx_poses.shape == (4, 8)
+    assert np.allclose(onnx_poses, torch_poses, atol=TOLERANCE)
+    crops = [
+        [(r["crop_x"], r["crop_y"], r["crop_size"]) for r in localization_rows(runs[backend])]
+        for backend in ("torch", "onnx")
+    ]
+    assert crops[0] == crops[1]
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["backend=onnx"], "run relocfw task=export model="),
+        (["backend=onnx", "scoring=shared"], "backend=onnx cannot use scoring=shared"),
+        (["backend=tensorrt"], "backend must be one of torch, onnx, got 'tensorrt'"),
+    ],
+    ids=["no onnx file", "shared scoring", "unknown backend"],
+)
+def test_cli_bad_backend_inputs(trained_model, tmp_path, args, message):
+    home, model, images = trained_model
+    lone = tmp_path / "model.relocfw"  # a model file with no export beside it
+    lone.write_bytes(model.read_bytes())
+    result = relocfw(
+        ["task=localize", f"model={lone}", f"images={images}/*.png", *args], tmp_path, home
+    )
+    assert result.returncode == 2, result.stdout
+    assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def docs_code_blocks():
+    text = (Path(__file__).resolve().parents[1] / "docs" / "onnx.md").read_text()
+    return re.findall(r"```python\n(.*?)```", text, flags=re.DOTALL)
+
+
+@pytest.mark.parametrize("crop_scale", [1.0, 1.142857])
+def test_the_robot_recipe_in_the_docs_is_what_relocfw_does(tmp_path, monkeypatch, crop_scale):
+    """docs/onnx.md's preprocessing cuts relocfw's centre window, and its session answers
+    with relocfw's centre-crop pose."""
+    recipe, robot = docs_code_blocks()
+    namespace = {}
+    exec(recipe, namespace)  # our own docs: the code a reader copies
+    rng = np.random.default_rng(0)
+    for height, width in ((36, 48), (48, 36), (40, 40), (480, 640), (37, 101)):
+        image = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+        strip = Strip(image, 32, crop_scale)
+        want = to_network_input(strip.cut(strip.window(strip.centre_crop()))[None]).numpy()
+        got = namespace["preprocess"](image, 32, crop_scale)
+        assert got.dtype == np.float32 and np.array_equal(got, want), (height, width)
+    backbone = tiny_posenet()
+    backbone.set_crop_scale(crop_scale)
+    export_onnx(backbone, tmp_path / "model.relocfw.onnx")
+    cv2.imwrite(str(tmp_path / "frame.png"), image[:, :, ::-1])
+    monkeypatch.chdir(tmp_path)
+    exec(robot, namespace)
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop())
+    relocalizer.fit([image])
+    pose = relocalizer.localize(image).pose
+    assert np.allclose(namespace["positions"][0], pose.position, atol=TOLERANCE)
+    quaternion = namespace["quaternions"][0] * np.sign(namespace["quaternions"][0][0])
+    assert np.allclose(quaternion, pose.quaternion, atol=TOLERANCE)
