@@ -18,7 +18,7 @@ from relocfw.checkpoints import read_torch_file
 from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import Backbone
 from relocfw.options import integer_at_least, probability
-from relocfw.pose_head import DROPOUT_VARIANTS, PoseHead
+from relocfw.pose_head import PoseHead, dropout_variant_of
 from relocfw.values import PoseOutput
 
 INSTALL_HINT = 'pip install "relocfw[efficientnet]"'
@@ -68,12 +68,7 @@ class EfficientNetLite0(Backbone):
         self.feature_dim = integer_at_least("feature_dim", feature_dim, 1)
         if not 0 <= probability("dropout", dropout) < 1:
             raise ConfigError(f"dropout must be in [0, 1), got {dropout}")
-        if dropout_variant not in DROPOUT_VARIANTS:
-            raise ConfigError(
-                f"dropout_variant must be one of {', '.join(DROPOUT_VARIANTS)}, "
-                f"got {dropout_variant!r}"
-            )
-        self.dropout_variant = dropout_variant
+        self.dropout_variant = dropout_variant_of(dropout_variant)
         self.dropout_rate = float(dropout)
         self.mc_samples = integer_at_least("mc_samples", mc_samples, 0)
         self.pretrained = bool(pretrained)

@@ -19,7 +19,7 @@ from relocfw.errors import ConfigError, DataError
 from relocfw.interfaces import Backbone
 from relocfw.options import integer_at_least, probability, real_number
 from relocfw.plugins.googlenet import ConvBnRelu, GoogLeNetTrunk, scaled
-from relocfw.pose_head import DROPOUT_VARIANTS, PoseHead, PoseRegressor
+from relocfw.pose_head import PoseHead, PoseRegressor, dropout_variant_of
 from relocfw.values import PoseOutput
 
 # Input normalisation of a network trained here from scratch: ImageNet's statistics.
@@ -96,12 +96,7 @@ class PoseNet(Backbone):
             raise ConfigError(f"width must be in (0, 4], got {width}")
         if not 0 <= probability("dropout", dropout) < 1:
             raise ConfigError(f"dropout must be in [0, 1), got {dropout}")
-        if dropout_variant not in DROPOUT_VARIANTS:
-            raise ConfigError(
-                f"dropout_variant must be one of {', '.join(DROPOUT_VARIANTS)}, "
-                f"got {dropout_variant!r}"
-            )
-        self.dropout_variant = dropout_variant
+        self.dropout_variant = dropout_variant_of(dropout_variant)
         self.dropout_rate = float(dropout)
         self.trunk = GoogLeNetTrunk(width)
         self.aux1 = AuxiliaryHead(self.trunk.aux_channels[0], width)

@@ -13,6 +13,7 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
+from relocfw.errors import ConfigError
 from relocfw.values import PoseOutput
 
 
@@ -46,6 +47,15 @@ def mean_quaternions(samples: torch.Tensor) -> torch.Tensor:
 SAMPLED_IMAGES_PER_PASS = 256  # see PoseHead.images_per_pass
 # Where a backbone's dropout can sit (backbone.dropout_variant); see plugins/posenet.py.
 DROPOUT_VARIANTS = ("head", "kendall", "all")
+
+
+def dropout_variant_of(variant: str) -> str:
+    """`variant` if it is one of DROPOUT_VARIANTS; ConfigError naming the option if not."""
+    if variant not in DROPOUT_VARIANTS:
+        raise ConfigError(
+            f"dropout_variant must be one of {', '.join(DROPOUT_VARIANTS)}, got {variant!r}"
+        )
+    return variant
 
 
 def sample_statistics(
