@@ -92,7 +92,9 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
         assert method in header
     assert "Sweep + exhaustive" not in header  # changed search AND index: bounds nothing
     assert "Bayesian PoseNet uncertainty" in result.stdout
-    pngs = sorted(p.name for p in run_dir.glob("*.png"))
+    # Every row shares one trained model: one training curve.
+    assert len(list(run_dir.glob("training_curve_*.png"))) == 1
+    pngs = sorted(p.name for p in run_dir.glob("synthetic_*.png"))
     assert pngs == [
         "synthetic_Bayesian_PoseNet_uncertainty.png",
         "synthetic_error_per_image.png",
