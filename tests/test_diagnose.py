@@ -167,7 +167,8 @@ def test_cli_diagnose_writes_table_windows_and_figures(tmp_path):
             assert sum(int(r[flag]) for r in mine) == 1, flag
         oracle = next(float(r["position_error_m"]) for r in mine if r["is_oracle"] == "1")
         assert oracle == min(float(r["position_error_m"]) for r in mine)
-    pngs = sorted(p.name for p in run_dir.glob("*.png"))
+    assert (run_dir / "training_curve.png").is_file()
+    pngs = sorted(p.name for p in run_dir.glob("diagnose_*.png"))
     assert pngs == [
         "diagnose_crops.png",
         "diagnose_distance_vs_error.png",
