@@ -419,7 +419,10 @@ class Relocalizer:
             finally:
                 lockstep.leave(member)
 
-        threads = [threading.Thread(target=search, args=(m,)) for m in range(len(runs))]
+        # Daemons: an interrupted run (Ctrl-C while joining) must not hang on them.
+        threads = [
+            threading.Thread(target=search, args=(m,), daemon=True) for m in range(len(runs))
+        ]
         started_threads = 0
         try:
             for thread in threads:
