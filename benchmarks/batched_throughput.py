@@ -24,7 +24,7 @@ import torch
 from common import model_frames, write_json  # benchmarks/, the script's own folder
 from shared_scoring import pose_difference
 
-from relocfw import Relocalizer
+from relocfw import load_model
 from relocfw.data.frames import read_images
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
@@ -59,11 +59,11 @@ def main() -> None:
     )
     args = parser.parse_args()
     rows = []
-    frames = model_frames(Relocalizer.load(args.model), args.cache.expanduser())
+    frames = model_frames(load_model(args.model), args.cache.expanduser())
     images = read_images(frames[: args.queries] if args.queries else frames, quiet=True)
     for name in args.only:
         crop, scoring = SETTINGS[name]
-        relocalizer = Relocalizer.load(args.model, batch_size=args.batch_size, scoring=scoring)
+        relocalizer = load_model(args.model, batch_size=args.batch_size, scoring=scoring)
         relocalizer.crop = crop()
         relocalizer.localize_many(images[: args.group], args.group)  # warm-up
         single, single_s = timed(lambda r=relocalizer: [r.localize(i) for i in images])

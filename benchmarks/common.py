@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from relocfw.checkpoints import write_text_atomic
+from relocfw.core.geometry import pose_from_matrix
+from relocfw.core.values import Pose
 from relocfw.data.frames import Frame
 from relocfw.data.room import Room, RoomRenderer
 from relocfw.data.synthetic import SyntheticSceneSpec, lap_poses, scene_laps
-from relocfw.geometry import pose_from_matrix
-from relocfw.values import Pose
+from relocfw.model.checkpoints import write_text_atomic
 
 
 def render_views(
@@ -37,7 +37,7 @@ def write_json(report: dict, out: Path) -> None:
 
 
 def model_frames(relocalizer, cache_dir: Path, split: str = "test") -> list[Frame]:
-    """A split of the dataset named in a model file's metadata (Relocalizer.load)."""
+    """A split of the dataset named in a model file's metadata (relocfw.load_model)."""
     settings = dict(relocalizer.metadata["dataset_settings"])
     module, _, name = settings.pop("_target_").rpartition(".")
     dataset = getattr(importlib.import_module(module), name)(cache_dir=cache_dir, **settings)

@@ -30,10 +30,10 @@ import numpy as np
 import torch
 from common import model_frames, render_views, write_json  # benchmarks/, the script's own folder
 
-from relocfw import Relocalizer
+from relocfw import Relocalizer, load_model
+from relocfw.core.imaging import Strip
+from relocfw.core.interfaces import crop_at, crop_side_and_span
 from relocfw.data.frames import read_images
-from relocfw.imaging import Strip
-from relocfw.interfaces import crop_at, crop_side_and_span
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch
@@ -120,7 +120,7 @@ def ga_budgets(backbone: PoseNet, count: int, map_images: int) -> list[dict]:
 
 def real_descriptors(model: Path, cache: Path, most: int) -> np.ndarray:
     """Up to `most` descriptors of the sweep windows of the model's training images."""
-    relocalizer = Relocalizer.load(model)
+    relocalizer = load_model(model)
     images = read_images(model_frames(relocalizer, cache, "train"), quiet=True)
     size = relocalizer.backbone.input_size
     rng = np.random.default_rng(0)

@@ -37,9 +37,9 @@ import torch
 from common import model_frames, write_json  # benchmarks/, the script's own folder
 from shared_scoring import pose_difference
 
-from relocfw import Relocalizer
+from relocfw import Relocalizer, load_model
+from relocfw.core.imaging import Strip
 from relocfw.data.frames import read_images
-from relocfw.imaging import Strip
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.sweep_crop import SweepCrop
@@ -52,7 +52,7 @@ def settings(model: Path, reranks: list[int]) -> list[tuple[str, Relocalizer]]:
     """(name, relocalizer) of every setting, each with its own loaded copy."""
 
     def load(crop, scoring: str = "plain", rerank: int = 1) -> Relocalizer:
-        relocalizer = Relocalizer.load(model, scoring=scoring)
+        relocalizer = load_model(model, scoring=scoring)
         relocalizer.crop, relocalizer.rerank = crop, rerank
         return relocalizer
 

@@ -24,8 +24,8 @@ import torch
 from common import render_views, write_json  # benchmarks/, the script's own folder
 
 from relocfw import Relocalizer
-from relocfw.onnx_backbone import onnx_relocalizer
-from relocfw.onnx_export import OPSET, export_onnx
+from relocfw.model.onnx_backbone import onnx_relocalizer
+from relocfw.model.onnx_export import OPSET, export_onnx
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet

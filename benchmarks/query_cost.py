@@ -2,7 +2,7 @@
 
 640 x 480 images (480-pixel crops, 160 offsets), 224-pixel GoogLeNet input, each crop
 search with plain scoring (every candidate through the whole network) and shared
-scoring (one trunk pass over the strip, see relocfw.window_pooling). Timing does not
+scoring (one trunk pass over the strip, see relocfw.core.window_pooling). Timing does not
 depend on the weights, so the network is freshly initialised; the map is fitted on
 descriptors of rendered training views. Prints a table, writes JSON.
 

@@ -28,14 +28,14 @@ import numpy as np
 import torch
 from common import model_frames, write_json  # benchmarks/, the script's own folder
 
-from relocfw import Relocalizer
+from relocfw import Relocalizer, load_model
+from relocfw.core.geometry import orientation_error_deg, position_error
+from relocfw.core.imaging import Strip
+from relocfw.core.interfaces import crop_at, crop_side_and_span
+from relocfw.core.values import Pose
 from relocfw.data.frames import read_images
-from relocfw.geometry import orientation_error_deg, position_error
-from relocfw.imaging import Strip
-from relocfw.interfaces import crop_at, crop_side_and_span
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.sweep_crop import SweepCrop
-from relocfw.values import Pose
 
 
 def descriptor_agreement(plain: Relocalizer, shared: Relocalizer, image: np.ndarray) -> dict:
@@ -93,8 +93,8 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=5, help="GA seeds per scoring")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/shared_scoring.json"))
     args = parser.parse_args()
-    plain = Relocalizer.load(args.model)
-    shared = Relocalizer.load(args.model, scoring="shared")
+    plain = load_model(args.model)
+    shared = load_model(args.model, scoring="shared")
     frames = model_frames(plain, args.cache.expanduser())
     images = read_images(frames, quiet=True)
 

@@ -22,16 +22,16 @@ from pathlib import Path
 import torch
 from common import render_views, write_json  # benchmarks/, the script's own folder
 
-from relocfw.imaging import to_network_input
-from relocfw.loss import posenet_loss
-from relocfw.plugins.posenet import PoseNet
-from relocfw.training import (
+from relocfw.core.imaging import to_network_input
+from relocfw.model.loss import posenet_loss
+from relocfw.model.training import (
     TrainingImages,
     TrainSettings,
     make_optimizer,
     make_weighting,
     train_backbone,
 )
+from relocfw.plugins.posenet import PoseNet
 
 
 def bare_rate(

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from relocfw.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span
-from relocfw.values import Crop
+from relocfw.core.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span
+from relocfw.core.values import Crop
 
 
 class CentreCrop(CropSearch):

@@ -14,12 +14,12 @@ from collections.abc import Callable
 import torch
 from torch import nn
 
-from relocfw.checkpoints import read_torch_file
-from relocfw.errors import ConfigError, DataError
-from relocfw.interfaces import Backbone
-from relocfw.options import integer_at_least, probability
-from relocfw.pose_head import PoseHead, dropout_variant_of
-from relocfw.values import PoseOutput
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.interfaces import Backbone
+from relocfw.core.options import integer_at_least, probability
+from relocfw.core.values import PoseOutput
+from relocfw.model.checkpoints import read_torch_file
+from relocfw.model.pose_head import PoseHead, dropout_variant_of
 
 INSTALL_HINT = 'pip install "relocfw[efficientnet]"'
 

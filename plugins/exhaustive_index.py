@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from relocfw.errors import DataError
-from relocfw.interfaces import SimilarityIndex
-from relocfw.standardise import ZScore, check_features, k_nearest
+from relocfw.core.errors import DataError
+from relocfw.core.interfaces import SimilarityIndex
+from relocfw.core.standardise import ZScore, check_features, k_nearest
 
 
 class ExhaustiveIndex(SimilarityIndex):

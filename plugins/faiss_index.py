@@ -18,10 +18,10 @@ import logging
 import numpy as np
 import torch
 
-from relocfw.errors import ConfigError, DataError
-from relocfw.interfaces import SimilarityIndex
-from relocfw.options import integer_at_least
-from relocfw.standardise import ROWS_AT_A_TIME, ZScore, checked_descriptors, row_chunks
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.interfaces import SimilarityIndex
+from relocfw.core.options import integer_at_least
+from relocfw.core.standardise import ROWS_AT_A_TIME, ZScore, checked_descriptors, row_chunks
 
 KINDS = ("flat", "ivf", "hnsw")
 PRECISIONS = ("float32", "float16")

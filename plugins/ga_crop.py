@@ -8,7 +8,7 @@ Fitness is exp(-distance); parents are drawn by roulette, paired for single-poin
 crossover with probability Pc, and each bit flips with probability Pm.
 
 Each query draws its own random stream from the search's seed and the query's
-`query_seed` (a fingerprint of the image, see relocfw.interfaces.query_seed): a test
+`query_seed` (a fingerprint of the image, see relocfw.core.interfaces.query_seed): a test
 split is many independent GA runs, not one run repeated, and the same image still
 gives the same crop.
 """
@@ -19,9 +19,15 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from relocfw.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span, query_seed
-from relocfw.options import integer_at_least, probability
-from relocfw.values import Crop
+from relocfw.core.interfaces import (
+    CropDistance,
+    CropSearch,
+    crop_at,
+    crop_side_and_span,
+    query_seed,
+)
+from relocfw.core.options import integer_at_least, probability
+from relocfw.core.values import Crop
 
 
 def chromosome_bits(span: int) -> int:

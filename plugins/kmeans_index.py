@@ -6,10 +6,10 @@ import numpy as np
 import torch
 from sklearn.cluster import KMeans
 
-from relocfw.errors import ConfigError, DataError
-from relocfw.interfaces import SimilarityIndex
-from relocfw.options import integer_at_least
-from relocfw.standardise import ZScore, check_features, nearest
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.interfaces import SimilarityIndex
+from relocfw.core.options import integer_at_least
+from relocfw.core.standardise import ZScore, check_features, nearest
 
 
 class KMeansIndex(SimilarityIndex):

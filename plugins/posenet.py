@@ -14,13 +14,13 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from relocfw.checkpoints import read_torch_file
-from relocfw.errors import ConfigError, DataError
-from relocfw.interfaces import Backbone
-from relocfw.options import integer_at_least, probability, real_number
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.interfaces import Backbone
+from relocfw.core.options import integer_at_least, probability, real_number
+from relocfw.core.values import PoseOutput
+from relocfw.model.checkpoints import read_torch_file
+from relocfw.model.pose_head import PoseHead, PoseRegressor, dropout_variant_of
 from relocfw.plugins.googlenet import ConvBnRelu, GoogLeNetTrunk, scaled
-from relocfw.pose_head import PoseHead, PoseRegressor, dropout_variant_of
-from relocfw.values import PoseOutput
 
 # Input normalisation of a network trained here from scratch: ImageNet's statistics.
 IMAGENET_MEAN = (0.485, 0.456, 0.406)

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from relocfw.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span
-from relocfw.options import integer_at_least
-from relocfw.values import Crop
+from relocfw.core.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span
+from relocfw.core.options import integer_at_least
+from relocfw.core.values import Crop
 
 
 class SweepCrop(CropSearch):

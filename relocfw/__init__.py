@@ -1,9 +1,26 @@
-"""relocfw: plugin-based visual relocalization (6-DoF pose from one RGB image)."""
+"""relocfw: plugin-based visual relocalization (6-DoF pose from one RGB image).
 
-from relocfw.errors import ConfigError, DataError, RelocfwError
-from relocfw.interfaces import Backbone, CropDistance, CropSearch, SimilarityIndex
-from relocfw.pipeline import Relocalizer
-from relocfw.values import Crop, Localization, Pose, PoseOutput
+The package is five parts, imports running one way (app -> report -> model, data ->
+core), checked by tests/test_layout.py:
+
+- `relocfw.core`: the plugin interfaces, values, the `Relocalizer` pipeline, geometry,
+  imaging, descriptor standardisation, test-time sampling. Plain Python + torch.
+- `relocfw.model`: the pose head, loss, training, checkpoints, model files, ONNX.
+- `relocfw.data`: dataset loaders and the synthetic scene.
+- `relocfw.report`: evaluation, metrics, statistics over seeds, comparisons, figures,
+  the crop-premise diagnosis.
+- `relocfw.app`: the Hydra CLI, its tasks, plugin discovery, the torchrun entry.
+"""
+
+import importlib
+import sys
+
+from relocfw.core.errors import ConfigError, DataError, RelocfwError
+from relocfw.core.interfaces import Backbone, CropDistance, CropSearch, SimilarityIndex
+from relocfw.core.pipeline import Relocalizer
+from relocfw.core.values import Crop, Localization, Pose, PoseOutput
+from relocfw.core.version import VERSION
+from relocfw.model.model_file import load_model, save_model
 
 __all__ = [
     "Backbone",
@@ -18,5 +35,27 @@ __all__ = [
     "Relocalizer",
     "RelocfwError",
     "SimilarityIndex",
+    "load_model",
+    "save_model",
 ]
-__version__ = "0.1.0"
+__version__ = VERSION
+
+# Plugins written for relocfw 0.1 import these modules from their first, flat paths
+# (`relocfw.interfaces`, ...). The plugin API only grows within a major version
+# (docs/plugins.md, "Versioning"), so those paths stay importable: each names the
+# module itself, not a copy, so classes and isinstance checks are the same objects.
+FLAT_PATHS = {
+    "checkpoints": "relocfw.model.checkpoints",
+    "contracts": "relocfw.core.contracts",
+    "errors": "relocfw.core.errors",
+    "geometry": "relocfw.core.geometry",
+    "imaging": "relocfw.core.imaging",
+    "interfaces": "relocfw.core.interfaces",
+    "options": "relocfw.core.options",
+    "pose_head": "relocfw.model.pose_head",
+    "standardise": "relocfw.core.standardise",
+    "values": "relocfw.core.values",
+}
+for _flat, _moved in FLAT_PATHS.items():
+    sys.modules.setdefault(f"relocfw.{_flat}", importlib.import_module(_moved))
+del _flat, _moved

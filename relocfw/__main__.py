@@ -1,5 +1,5 @@
 """`python -m relocfw` runs the CLI, like the `relocfw` command."""
 
-from relocfw.cli import main
+from relocfw.app.cli import main
 
 main()

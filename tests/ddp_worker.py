@@ -27,11 +27,11 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-from relocfw.distributed import World
-from relocfw.interfaces import Backbone
-from relocfw.pose_head import PoseHead
-from relocfw.training import TrainingImages, TrainingRun, TrainSettings, train_backbone
-from relocfw.values import Pose
+from relocfw.core.interfaces import Backbone
+from relocfw.core.values import Pose
+from relocfw.model.distributed import World
+from relocfw.model.pose_head import PoseHead
+from relocfw.model.training import TrainingImages, TrainingRun, TrainSettings, train_backbone
 
 PLAIN = TrainSettings(iterations=6, batch_size=8, lr=0.05, checkpoint_every=2, seed=3)
 DROPOUT = TrainSettings(iterations=6, batch_size=8, lr=0.05, checkpoint_every=2, seed=4)

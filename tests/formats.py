@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from relocfw.core.geometry import matrix_to_quaternion, quaternion_to_matrix
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.geometry import matrix_to_quaternion, quaternion_to_matrix
 
 
 def scene_frames(scene: Path, split: str):

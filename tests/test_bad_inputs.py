@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw.checkpoints import load_checkpoint
-from relocfw.cli_methods import pick_device
-from relocfw.errors import ConfigError
+from relocfw.app.cli_methods import pick_device
+from relocfw.core.errors import ConfigError
+from relocfw.model.checkpoints import load_checkpoint
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
 from tests.formats import write_cambridge, write_folder, write_tum
 from tests.test_cli import relocfw
@@ -279,11 +279,11 @@ def test_killed_training_resumes(tmp_path):
 
 
 def test_library_load_and_localize(trained_run):
-    from relocfw import Relocalizer
-    from relocfw.imaging import read_rgb
+    from relocfw import load_model
+    from relocfw.core.imaging import read_rgb
 
     home, run_dir = trained_run
-    relocalizer = Relocalizer.load(run_dir / "model.relocfw")
+    relocalizer = load_model(run_dir / "model.relocfw")
     assert relocalizer.metadata["map_images"] == 16
     scene = next((home / "cache" / "scenes").iterdir())
     answer = relocalizer.localize(read_rgb(scene / "seq-03" / "frame-000000.color.png"))

@@ -4,10 +4,11 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw.geometry import mean_quaternion, orientation_error_deg
+from relocfw.core.geometry import mean_quaternion, orientation_error_deg
+from relocfw.core.sampling import mean_quaternions
+from relocfw.core.values import PoseOutput
+from relocfw.model.pose_head import PoseHead
 from relocfw.plugins.posenet import PoseNet
-from relocfw.pose_head import PoseHead, mean_quaternions
-from relocfw.values import PoseOutput
 
 
 def axis_angle(axis, degrees):

@@ -1,7 +1,7 @@
 """A checkpoint is reused only for the same model: any training input changes its key.
 
 Methods are built from composed configs exactly as the CLI builds them (build_method),
-then trained or reused by jobs.train_or_reuse on the tiny synthetic scene.
+then trained or reused by relocalize_task.train_or_reuse on the tiny synthetic scene.
 """
 
 from dataclasses import replace
@@ -11,12 +11,12 @@ import pytest
 import torch
 from hydra import compose, initialize_config_module
 
-from relocfw import jobs
-from relocfw.checkpoints import load_checkpoint, settings_key
-from relocfw.cli_methods import build_method
+from relocfw.app import relocalize_task
+from relocfw.app.cli_methods import build_method
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.training import TrainingRun
+from relocfw.model.checkpoints import load_checkpoint, settings_key
+from relocfw.model.training import TrainingRun
 from tests.conftest import TINY_MODEL
 
 TINY = [o for o in TINY_MODEL if not o.startswith("hydra.")] + ["backbone.width=0.0625"]
@@ -41,7 +41,7 @@ def cache(tmp_path_factory):
 
 def train(method, frames, images, cache):
     """(checkpoint path, whether it was reused) for this method and training split."""
-    checkpoint, run = jobs.train_or_reuse(
+    checkpoint, run = relocalize_task.train_or_reuse(
         method.backbone,
         frames,
         images,
@@ -99,7 +99,7 @@ def test_a_changed_training_or_backbone_option_trains_a_new_model(
         asked.append(checkpoint)
         return TrainingRun([], reused=checkpoint.is_file())
 
-    monkeypatch.setattr(jobs, "train_backbone", stub)
+    monkeypatch.setattr(relocalize_task, "train_backbone", stub)
     checkpoint, reused = train(method_of(*overrides), *train_split, cache)
     assert asked == [checkpoint]
     assert checkpoint != first and not reused

@@ -13,6 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.geometry import quaternion_to_matrix
+from relocfw.core.values import Pose
 from relocfw.data.colmap import (
     UNITS_NOTE,
     ColmapDataset,
@@ -28,9 +31,6 @@ from relocfw.data.colmap_format import (
     read_images_text,
     write_model,
 )
-from relocfw.errors import ConfigError, DataError
-from relocfw.geometry import quaternion_to_matrix
-from relocfw.values import Pose
 from tests.conftest import TINY_MODEL
 from tests.test_cli import relocfw
 

@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from relocfw.cli_compare import rerun_crop_seeds
+from relocfw.app.cli_compare import rerun_crop_seeds
+from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
-from relocfw.evaluation import MethodResult
-from relocfw.values import Crop, Localization, Pose
+from relocfw.report.evaluation import MethodResult
 
 
 class SeedEchoRelocalizer:

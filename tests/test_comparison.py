@@ -1,8 +1,10 @@
 import numpy as np
 import pytest
 
-from relocfw import figures
-from relocfw.comparison import (
+from relocfw.core.values import Crop, Localization, Pose
+from relocfw.data.frames import Frame
+from relocfw.report import figures
+from relocfw.report.comparison import (
     as_csv,
     as_markdown,
     crop_seed_markdown,
@@ -12,9 +14,7 @@ from relocfw.comparison import (
     table_rows,
     uncertainty_check,
 )
-from relocfw.data.frames import Frame
-from relocfw.evaluation import MethodResult
-from relocfw.values import Crop, Localization, Pose
+from relocfw.report.evaluation import MethodResult
 
 
 def frames(n):

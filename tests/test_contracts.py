@@ -4,7 +4,7 @@ import dataclasses
 
 import pytest
 
-from relocfw.contracts import check_backbone, check_crop_search, check_similarity_index
+from relocfw.core.contracts import check_backbone, check_crop_search, check_similarity_index
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch

@@ -2,10 +2,12 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw.errors import ConfigError
-from relocfw.imaging import image_fingerprint
-from relocfw.interfaces import CropSearch, crop_at, query_seed
-from relocfw.pipeline import Relocalizer
+from relocfw.core.errors import ConfigError
+from relocfw.core.imaging import image_fingerprint
+from relocfw.core.interfaces import CropSearch, crop_at, query_seed
+from relocfw.core.pipeline import Relocalizer
+from relocfw.core.query_run import QueryRun
+from relocfw.core.values import Crop
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import (
@@ -17,8 +19,6 @@ from relocfw.plugins.ga_crop import (
 )
 from relocfw.plugins.posenet import PoseNet
 from relocfw.plugins.sweep_crop import SweepCrop
-from relocfw.query_run import QueryRun
-from relocfw.values import Crop
 
 
 class Recorder:

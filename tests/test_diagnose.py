@@ -8,15 +8,22 @@ import numpy as np
 import pytest
 
 from relocfw import Relocalizer
+from relocfw.core.geometry import orientation_error_deg, position_error
+from relocfw.core.json_output import json_ready
+from relocfw.core.values import Pose
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.diagnosis import diagnose, pick, picks_of, pose_errors, spearman, summarise_headroom
-from relocfw.geometry import orientation_error_deg, position_error
-from relocfw.json_output import json_ready
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.sweep_crop import SweepCrop
-from relocfw.values import Pose
+from relocfw.report.diagnosis import (
+    diagnose,
+    pick,
+    picks_of,
+    pose_errors,
+    spearman,
+    summarise_headroom,
+)
 from tests.conftest import TINY_OVERRIDES
 from tests.test_cli import relocfw
 from tests.test_pipeline import CountingPoseNet
@@ -184,7 +191,7 @@ def test_cli_diagnose_writes_table_windows_and_figures(tmp_path):
 def test_within_query_correlation_counts_each_distinct_window_once():
     from scipy.stats import spearmanr
 
-    from relocfw.diagnosis import distinct_windows
+    from relocfw.report.diagnosis import distinct_windows
 
     # Three windows; the first is shared by four offsets (as at 96 px, where 161 offsets
     # land on 38 windows). Ranked once each: rho(d, e) = -0.5.

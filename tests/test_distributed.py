@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch.distributed as dist
 
-from relocfw.errors import DataError
-from relocfw.training import train_backbone
+from relocfw.core.errors import DataError
+from relocfw.model.training import train_backbone
 from tests.conftest import TINY_OVERRIDES
 from tests.ddp_worker import DROPOUT, TinyConvPose, training_data
 

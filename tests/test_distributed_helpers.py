@@ -8,8 +8,9 @@ import pytest
 import torch
 from torch import nn
 
-from relocfw.checkpoints import load_checkpoint
-from relocfw.distributed import (
+from relocfw.core.errors import DataError
+from relocfw.model.checkpoints import load_checkpoint
+from relocfw.model.distributed import (
     World,
     data_parallel,
     gather_rng_states,
@@ -18,8 +19,7 @@ from relocfw.distributed import (
     rng_state,
     synchronise_batch_norm,
 )
-from relocfw.errors import DataError
-from relocfw.training import TrainSettings, train_backbone
+from relocfw.model.training import TrainSettings, train_backbone
 from tests.ddp_worker import TinyConvPose, training_data
 
 CPU, CUDA = torch.device("cpu"), torch.device("cuda", 1)

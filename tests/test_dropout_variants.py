@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw.errors import ConfigError
+from relocfw.core.errors import ConfigError
 from relocfw.plugins.posenet import PoseNet
 
 TINY = {"input_size": 32, "width": 0.125, "feature_dim": 16}

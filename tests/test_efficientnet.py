@@ -3,7 +3,7 @@ import importlib
 import pytest
 import torch
 
-from relocfw.errors import ConfigError
+from relocfw.core.errors import ConfigError
 from relocfw.plugins import efficientnet_lite
 from relocfw.plugins.efficientnet_lite import EfficientNetLite0
 

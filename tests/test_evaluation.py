@@ -5,9 +5,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
-from relocfw.evaluation import MethodResult, evaluate, summarise
-from relocfw.values import Crop, Localization, Pose
+from relocfw.report.evaluation import MethodResult, evaluate, summarise
 
 IDENTITY = (1.0, 0.0, 0.0, 0.0)
 

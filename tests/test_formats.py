@@ -5,15 +5,15 @@ import numpy as np
 import pytest
 import torch
 
+from relocfw.core.errors import DataError
+from relocfw.core.geometry import checked_quaternion, quaternion_to_matrix
+from relocfw.core.imaging import Strip, read_rgb
+from relocfw.core.values import Pose
 from relocfw.data.cambridge import CambridgeLandmarks
 from relocfw.data.folder import PoseFolder
 from relocfw.data.on_error import OnError
 from relocfw.data.tum import TumDataset, associate, read_trajectory
-from relocfw.errors import DataError
-from relocfw.geometry import checked_quaternion, quaternion_to_matrix
-from relocfw.imaging import Strip, read_rgb
-from relocfw.training import TrainingImages
-from relocfw.values import Pose
+from relocfw.model.training import TrainingImages
 from tests.formats import assert_same_poses, write_cambridge, write_folder, write_tum
 
 

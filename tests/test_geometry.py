@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from relocfw.errors import DataError
-from relocfw.geometry import (
+from relocfw.core.errors import DataError
+from relocfw.core.geometry import (
     matrix_to_quaternion,
     mean_quaternion,
     orientation_error_deg,
@@ -11,7 +11,7 @@ from relocfw.geometry import (
     position_error,
     quaternion_to_matrix,
 )
-from relocfw.values import Pose
+from relocfw.core.values import Pose
 
 
 def axis_angle(axis, degrees):

@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from relocfw.errors import ConfigError, DataError
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.standardise import ZScore, nearest
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.kmeans_index import KMeansIndex
-from relocfw.standardise import ZScore, nearest
 
 
 def descriptors(n, d=16, seed=0):

@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
-from relocfw.localize_job import localize_images
-from relocfw.values import Crop, Localization, Pose
+from relocfw.app.localize_task import localize_images
+from relocfw.core.values import Crop, Localization, Pose
 
 
 class GreyLevelRelocalizer:

@@ -7,10 +7,10 @@ import pytest
 import torch
 
 from relocfw import ConfigError, Relocalizer
+from relocfw.core.interfaces import CropSearch, crop_at
+from relocfw.core.lockstep import Lockstep
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.interfaces import CropSearch, crop_at
-from relocfw.lockstep import Lockstep
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from relocfw.metrics import RECALL_BANDS, accuracy_metrics, band_key, band_title
+from relocfw.report.metrics import RECALL_BANDS, accuracy_metrics, band_key, band_title
 
 # Per query (m, deg), chosen so each band holds a different set of queries:
 POSITIONS = np.array([0.01, 0.04, 0.2, 0.3, 0.45, 1.5, 6.0, 0.05])

@@ -7,7 +7,7 @@ import torch
 from relocfw import Relocalizer
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.model_file import load_model, save_model
+from relocfw.model.model_file import load_model, save_model
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.kmeans_index import KMeansIndex

@@ -11,15 +11,16 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from relocfw import cli, onnx_export
+from relocfw.app import cli
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.imaging import Strip, to_network_input
+from relocfw.core.pipeline import Relocalizer
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.errors import ConfigError, DataError
-from relocfw.imaging import Strip, to_network_input
-from relocfw.model_file import save_model
-from relocfw.onnx_backbone import OnnxBackbone, onnx_relocalizer
-from relocfw.onnx_export import export_onnx, onnx_path
-from relocfw.pipeline import Relocalizer
+from relocfw.model import onnx_export
+from relocfw.model.model_file import save_model
+from relocfw.model.onnx_backbone import OnnxBackbone, onnx_relocalizer
+from relocfw.model.onnx_export import export_onnx, onnx_path
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch

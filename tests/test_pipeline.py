@@ -3,9 +3,9 @@ import pytest
 import torch
 
 from relocfw import Crop, Relocalizer
+from relocfw.core.imaging import Strip
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.imaging import Strip
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch

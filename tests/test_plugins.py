@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from relocfw.contracts import check_crop_search
+from relocfw.core.contracts import check_crop_search
 from tests.conftest import TINY_OVERRIDES
 from tests.test_cli import relocfw
 

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from relocfw.errors import ConfigError, DataError
+from relocfw.core.errors import ConfigError, DataError
 from relocfw.plugins.posenet import PoseNet, torchvision_to_posenet_key
 
 # Names and shapes of torchvision's googlenet state_dict, written from its published

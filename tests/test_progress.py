@@ -2,7 +2,7 @@
 
 import io
 
-from relocfw.progress import Progress
+from relocfw.core.progress import Progress
 
 
 class Terminal(io.StringIO):

@@ -3,12 +3,12 @@ import pytest
 import torch
 
 from relocfw import Relocalizer
-from relocfw.errors import ConfigError
-from relocfw.interfaces import Backbone
+from relocfw.core.errors import ConfigError
+from relocfw.core.interfaces import Backbone
+from relocfw.core.values import Pose, PoseOutput
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.kmeans_index import KMeansIndex
-from relocfw.values import Pose, PoseOutput
 
 
 class MeanColour(Backbone):

@@ -5,16 +5,16 @@ import pytest
 import torch
 
 from relocfw import Crop, Relocalizer
+from relocfw.core.errors import ConfigError
+from relocfw.core.imaging import Strip, image_fingerprint
+from relocfw.core.sampling import combine_samples, query_streams, random_windows
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.errors import ConfigError
-from relocfw.imaging import Strip, image_fingerprint
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
-from relocfw.sampling import combine_samples, query_streams, random_windows
 
 
 class SamplesSeen(PoseNet):

@@ -6,10 +6,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
-from relocfw.evaluation import MethodResult
-from relocfw.seed_comparison import seed_comparison, seed_markdown
-from relocfw.values import Crop, Localization, Pose
+from relocfw.report.evaluation import MethodResult
+from relocfw.report.seed_comparison import seed_comparison, seed_markdown
 from tests.conftest import TINY_OVERRIDES
 from tests.test_cli import relocfw
 
@@ -108,7 +108,7 @@ def test_bad_seed_lists_are_refused(tmp_path, seeds):
 def test_a_method_that_fails_queries_is_written_strictly_and_counted(tmp_path):
     import math
 
-    from relocfw.compare_job import write_comparison, write_seed_comparison
+    from relocfw.app.compare_task import write_comparison, write_seed_comparison
 
     good = [0.1, 0.2, 0.3, 0.4]
     failing = [0.1, float("nan"), 0.3, float("nan")]  # two queries without a pose

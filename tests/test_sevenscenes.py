@@ -4,10 +4,10 @@ import shutil
 import numpy as np
 import pytest
 
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.geometry import pose_to_matrix
+from relocfw.core.imaging import read_rgb
 from relocfw.data.sevenscenes import SevenScenes, load_sevenscenes, read_pose_file, read_split
-from relocfw.errors import ConfigError, DataError
-from relocfw.geometry import pose_to_matrix
-from relocfw.imaging import read_rgb
 
 
 def test_real_stairs_frames_load(stairs_sample):

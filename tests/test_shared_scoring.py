@@ -5,15 +5,15 @@ import pytest
 import torch
 
 from relocfw import ConfigError, Relocalizer
-from relocfw.imaging import Strip
-from relocfw.interfaces import Backbone
+from relocfw.core.imaging import Strip
+from relocfw.core.interfaces import Backbone
+from relocfw.core.values import PoseOutput
+from relocfw.core.window_pooling import StripMaps, coverage_weights
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
 from relocfw.plugins.sweep_crop import SweepCrop
-from relocfw.values import PoseOutput
-from relocfw.window_pooling import StripMaps, coverage_weights
 
 
 def tiny_posenet() -> PoseNet:

@@ -3,9 +3,8 @@
 import numpy as np
 import pytest
 
-from relocfw.errors import DataError
-from relocfw.plugins.exhaustive_index import ExhaustiveIndex
-from relocfw.standardise import (
+from relocfw.core.errors import DataError
+from relocfw.core.standardise import (
     DEAD_FRACTION,
     ZScore,
     checked_descriptors,
@@ -13,6 +12,7 @@ from relocfw.standardise import (
     nearest,
     row_chunks,
 )
+from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 
 
 def map_with_a_near_dead_unit(seed=0):

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from relocfw.statistics import difference, paired_test, spread, verdict
+from relocfw.report.statistics import difference, paired_test, spread, verdict
 
 
 def test_a_clearly_better_method_is_significantly_lower():

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from relocfw.imaging import Strip
-from relocfw.interfaces import crop_at, crop_side_and_span
+from relocfw.core.imaging import Strip
+from relocfw.core.interfaces import crop_at, crop_side_and_span
 
 
 def smooth_image(width: int, height: int) -> np.ndarray:

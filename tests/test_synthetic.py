@@ -1,10 +1,10 @@
 import cv2
 import numpy as np
 
+from relocfw.core.imaging import read_rgb
 from relocfw.data.room import Room, RoomRenderer
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.data.synthetic import SyntheticSceneSpec, ensure_synthetic_scene, look_rotation
-from relocfw.imaging import read_rgb
 
 
 def test_scene_is_written_in_the_7scenes_layout(tiny_scene):

@@ -2,18 +2,18 @@ import numpy as np
 import pytest
 import torch
 
-import relocfw.training as training
-from relocfw.checkpoints import load_checkpoint
+import relocfw.model.training as training
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.pipeline import Relocalizer
+from relocfw.core.values import PoseOutput
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.errors import ConfigError, DataError
-from relocfw.loss import FixedWeighting, LearnedWeighting, head_errors, posenet_loss
-from relocfw.pipeline import Relocalizer
+from relocfw.model.checkpoints import load_checkpoint
+from relocfw.model.loss import FixedWeighting, LearnedWeighting, head_errors, posenet_loss
+from relocfw.model.training import TrainingImages, TrainSettings, train_backbone
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.posenet import PoseNet
-from relocfw.training import TrainingImages, TrainSettings, train_backbone
-from relocfw.values import PoseOutput
 
 
 def test_fixed_loss_is_position_error_plus_beta_quaternion_error():

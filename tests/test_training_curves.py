@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw.checkpoints import load_checkpoint
+from relocfw.core.errors import ConfigError
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.errors import ConfigError
-from relocfw.figures import training_curve
+from relocfw.model.checkpoints import load_checkpoint
+from relocfw.model.training import TrainingImages, TrainSettings, train_backbone
 from relocfw.plugins.posenet import PoseNet
-from relocfw.training import TrainingImages, TrainSettings, train_backbone
+from relocfw.report.figures import training_curve
 
 LEARNED = TrainSettings(
     iterations=4, batch_size=4, optimizer="adam", lr=1e-2, loss="learned", checkpoint_every=2

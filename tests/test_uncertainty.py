@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from relocfw.uncertainty import (
+from relocfw.report.uncertainty import (
     ause,
     rejection_medians,
     sparsification_curve,
@@ -62,10 +62,10 @@ def test_quality_of_both_spreads_and_none_when_not_sampled():
 def test_a_sampled_methods_summary_carries_its_uncertainty_columns():
     from pathlib import Path
 
+    from relocfw.app.relocalize_task import summary_csv
+    from relocfw.core.values import Crop, Localization, Pose
     from relocfw.data.frames import Frame
-    from relocfw.evaluation import MethodResult, summarise
-    from relocfw.jobs import summary_csv
-    from relocfw.values import Crop, Localization, Pose
+    from relocfw.report.evaluation import MethodResult, summarise
 
     identity = np.array([1.0, 0.0, 0.0, 0.0])
     truth = Pose(np.zeros(3), identity)

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from relocfw.core.errors import DataError
+from relocfw.core.geometry import checked_quaternion, conjugate
+from relocfw.core.values import Pose
 from relocfw.data.frames import Frame
 from relocfw.data.on_error import OnError
 from relocfw.data.sevenscenes import scene_folder
 from relocfw.data.text import data_lines, numbers
-from relocfw.errors import DataError
-from relocfw.geometry import checked_quaternion, conjugate
-from relocfw.values import Pose
 
 SPLIT_FILES = {"train": "dataset_train.txt", "test": "dataset_test.txt"}
 HEADER_LINES = 3

@@ -19,17 +19,17 @@ from pathlib import Path
 
 import numpy as np
 
-from relocfw.data.colmap_format import ColmapImage, read_images_binary, read_images_text
-from relocfw.data.frames import Frame
-from relocfw.data.on_error import OnError
-from relocfw.errors import ConfigError, DataError
-from relocfw.geometry import (
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.geometry import (
     QUATERNION_MINIMUM,
     QUATERNION_TOLERANCE,
     conjugate,
     quaternion_to_matrix,
 )
-from relocfw.values import Pose
+from relocfw.core.values import Pose
+from relocfw.data.colmap_format import ColmapImage, read_images_binary, read_images_text
+from relocfw.data.frames import Frame
+from relocfw.data.on_error import OnError
 
 UNITS_NOTE = "positions are in COLMAP model units (arbitrary scale), not metres"
 SPLITS = ("train", "test")

@@ -30,8 +30,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from relocfw.core.errors import DataError
 from relocfw.data.on_error import OnError
-from relocfw.errors import DataError
 
 # Model id -> (name, number of parameters), checked against pycolmap 4.2.1.
 # cameras.bin stores only the id, so a model missing here cannot be read past;

@@ -15,12 +15,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.geometry import checked_quaternion
+from relocfw.core.values import Pose
 from relocfw.data.frames import Frame
 from relocfw.data.on_error import OnError
 from relocfw.data.text import data_lines, numbers
-from relocfw.errors import ConfigError, DataError
-from relocfw.geometry import checked_quaternion
-from relocfw.values import Pose
 
 COLUMN_NAMES = {
     "image": ("image", "file", "filename", "path"),

@@ -9,12 +9,12 @@ from pathlib import Path
 
 import numpy as np
 
+from relocfw.core.errors import DataError
+from relocfw.core.geometry import mean_quaternion
+from relocfw.core.imaging import read_rgb
+from relocfw.core.progress import Progress
+from relocfw.core.values import Pose
 from relocfw.data.on_error import OnError
-from relocfw.errors import DataError
-from relocfw.geometry import mean_quaternion
-from relocfw.imaging import read_rgb
-from relocfw.progress import Progress
-from relocfw.values import Pose
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from relocfw.errors import ConfigError, DataError
+from relocfw.core.errors import ConfigError, DataError
 
 
 class OnError:

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import numpy as np
 
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.geometry import pose_from_matrix
 from relocfw.data.frames import Frame
 from relocfw.data.on_error import OnError
-from relocfw.errors import ConfigError, DataError
-from relocfw.geometry import pose_from_matrix
 
 SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
 SEQUENCE_LINE = re.compile(r"^sequence(\d+)$", re.IGNORECASE)

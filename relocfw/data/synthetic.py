@@ -18,11 +18,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from relocfw.core.errors import ConfigError
+from relocfw.core.progress import Progress
 from relocfw.data.frames import Frame
 from relocfw.data.room import Room, RoomRenderer
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.errors import ConfigError
-from relocfw.progress import Progress
 
 RENDERER_VERSION = 1  # bump when rendering changes, so cached scenes are not reused
 

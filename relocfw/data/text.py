@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from relocfw.errors import DataError
+from relocfw.core.errors import DataError
 
 
 def data_lines(path: Path, skip: int = 0) -> Iterator[tuple[str, list[str]]]:

@@ -12,12 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.geometry import checked_quaternion
+from relocfw.core.values import Pose
 from relocfw.data.frames import Frame
 from relocfw.data.on_error import OnError
 from relocfw.data.text import data_lines, numbers
-from relocfw.errors import ConfigError, DataError
-from relocfw.geometry import checked_quaternion
-from relocfw.values import Pose
 
 
 def tum_quaternion_to_relocfw(qx: float, qy: float, qz: float, qw: float) -> list[float]:

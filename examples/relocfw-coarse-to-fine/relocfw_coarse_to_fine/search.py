@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from relocfw import Crop, CropDistance, CropSearch
-from relocfw.interfaces import crop_at, crop_side_and_span
+from relocfw.core.interfaces import crop_at, crop_side_and_span
 
 
 class CoarseToFineCrop(CropSearch):

@@ -1,7 +1,7 @@
 import numpy as np
 from relocfw_coarse_to_fine.search import CoarseToFineCrop
 
-from relocfw.contracts import check_crop_search
+from relocfw.core.contracts import check_crop_search
 
 
 def test_keeps_relocfw_contract():

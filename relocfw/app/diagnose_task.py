@@ -1,0 +1,174 @@
+"""`relocfw task=diagnose`: writing the crop-headroom numbers, table, windows and figures.
+
+Plain functions, no Hydra: diagnosed queries (relocfw.report.diagnosis) and settings in,
+files in the run directory out.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from relocfw.core.json_output import strict_json
+from relocfw.model.checkpoints import write_text_atomic
+from relocfw.report import diagnose_figures
+from relocfw.report.diagnosis import Picks, QueryWindows, picks_of, summarise_queries
+
+CHOICE_NAMES = {
+    "centre": "centre crop",
+    "min_distance": "min map distance",
+    "oracle_position": "oracle (position)",
+    "oracle_orientation": "oracle (orientation)",
+}
+WINDOW_COLUMNS = (
+    "frame",
+    "offset",
+    "crop_x",
+    "crop_y",
+    "crop_size",
+    "distance",
+    "position_error_m",
+    "orientation_error_deg",
+    "is_centre",
+    "is_min_distance",
+    "is_oracle",
+    "is_oracle_orientation",
+)
+
+
+def number(value: float, digits: int) -> str:
+    return "n/a" if math.isnan(value) else f"{value:.{digits}f}"
+
+
+def p_value(value: float) -> str:
+    """Two significant digits: a small p reads 3.2e-06, never 0.000."""
+    return "n/a" if math.isnan(value) else f"{value:.2g}"
+
+
+def as_markdown(scene: str, summary: dict[str, Any]) -> str:
+    """The scene's table: each crop choice's errors, then the premise's tests."""
+    lines = [
+        f"## {scene}: {summary['queries']} queries, "
+        f"{summary['mean_offsets_per_query']:.1f} crop offsets "
+        f"({summary['mean_windows_per_query']:.1f} distinct windows) per query",
+        "",
+        "| crop choice | median pos (m) | mean pos (m) | median ori (deg) | mean ori (deg) |",
+        "|---|---|---|---|---|",
+    ]
+    for key, name in CHOICE_NAMES.items():
+        e = summary["errors"][key]
+        lines.append(
+            f"| {name} | {e['median_position_m']:.3f} | {e['mean_position_m']:.3f} | "
+            f"{e['median_orientation_deg']:.2f} | {e['mean_orientation_deg']:.2f} |"
+        )
+    versus = summary["min_distance_vs_centre"]
+    within = summary["spearman_within"]
+    lines += [
+        "",
+        f"- min map distance vs centre crop (position): better on "
+        f"{versus['share_better_position']:.0%} of queries, worse on "
+        f"{versus['share_worse_position']:.0%}; paired Wilcoxon signed-rank p = "
+        f"{p_value(versus['wilcoxon_p_position'])} ({versus['wilcoxon_pairs']} untied pairs)",
+        f"- Spearman(map distance, position error) within a query: median "
+        f"{number(within['median'], 2)}, positive in {number(100 * within['share_positive'], 0)}% "
+        f"of {within['queries']} queries",
+        f"- Spearman across queries (each query's min distance vs its window's position "
+        f"error): {number(summary['spearman_across'], 2)}",
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def windows_csv(queries: Sequence[QueryWindows], picks: Sequence[Picks]) -> str:
+    """One row per query and crop offset, with which rules chose it."""
+    stream = io.StringIO()
+    writer = csv.writer(stream)
+    writer.writerow(WINDOW_COLUMNS)
+    for query, chosen in zip(queries, picks, strict=True):
+        for i in query.offsets:
+            x, y, size = query.crops[i]
+            writer.writerow(
+                [
+                    query.frame,
+                    int(i),
+                    int(x),
+                    int(y),
+                    int(size),
+                    f"{query.distances[i]:.6f}",
+                    f"{query.position_errors[i]:.6f}",
+                    f"{query.orientation_errors[i]:.4f}",
+                    int(i == chosen.centre),
+                    int(i == chosen.min_distance),
+                    int(i == chosen.oracle_position),
+                    int(i == chosen.oracle_orientation),
+                ]
+            )
+    return stream.getvalue()
+
+
+def write_diagnosis(
+    scene: str,
+    queries: Sequence[QueryWindows],
+    images: Sequence[np.ndarray],
+    run_dir: Path,
+    settings: dict[str, Any],
+    curve_queries: int = 4,
+    table3_queries: int = 3,
+) -> dict[str, Any]:
+    """diagnose.json, diagnose.md (printed), diagnose_windows.csv and the figures.
+
+    Args:
+        scene: the dataset's name, the table's heading.
+        queries: what `relocfw.report.diagnosis.diagnose` returned.
+        images: the query images, aligned with `queries` (for the Table 3 view).
+        settings: how the numbers were made (method, model, dataset); saved as is.
+        curve_queries: queries whose curves over the offset are drawn (0: no figure).
+        table3_queries: queries drawn with their crops outlined (0: no figure).
+
+    Returns:
+        What diagnose.json holds.
+    """
+    run_dir = Path(run_dir)
+    picks = picks_of(queries)
+    summary = summarise_queries(queries)
+    summary["mean_windows_per_query"] = float(np.mean([q.windows for q in queries]))
+    markdown = as_markdown(scene, summary)
+    write_text_atomic(markdown, run_dir / "diagnose.md")
+    write_text_atomic(windows_csv(queries, picks), run_dir / "diagnose_windows.csv")
+    title = f"({scene})"
+    written = [
+        diagnose_figures.distance_vs_error(
+            queries, picks, run_dir / "diagnose_distance_vs_error.png", title
+        )
+    ]
+    curves = diagnose_figures.evenly_spaced(len(queries), curve_queries)
+    if curves:
+        written.append(
+            diagnose_figures.offset_curves(
+                queries, picks, curves, run_dir / "diagnose_offset_curves.png", title
+            )
+        )
+    shown = diagnose_figures.evenly_spaced(len(queries), table3_queries)
+    if shown:
+        written.append(
+            diagnose_figures.crops_on_images(
+                queries, picks, images, shown, run_dir / "diagnose_crops.png", title
+            )
+        )
+    report = {
+        "settings": settings,
+        "scenes": {scene: summary},
+        "figures": [str(p) for p in written],
+    }
+    write_text_atomic(strict_json(report), run_dir / "diagnose.json")
+    print("\n" + markdown)
+    print(
+        f"diagnosis: {run_dir / 'diagnose.md'}, {run_dir / 'diagnose.json'}, "
+        f"{run_dir / 'diagnose_windows.csv'}; figures: {len(written)} PNG in {run_dir}"
+    )
+    return report

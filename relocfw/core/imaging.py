@@ -1,0 +1,93 @@
+"""Reading images and cutting square network inputs out of them."""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from relocfw.core.errors import DataError
+from relocfw.core.interfaces import crop_at, crop_side_and_span
+from relocfw.core.values import Crop
+
+
+def read_rgb(path: Path) -> np.ndarray:
+    """RGB uint8 image (H x W x 3); grey images are expanded to three channels.
+
+    Raises:
+        DataError: naming the file, when it is missing or cannot be decoded.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"image not found: {path}")
+    data = np.fromfile(path, dtype=np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    if image is None:
+        raise DataError(f"cannot decode image (corrupt or not an image): {path}")
+    return np.ascontiguousarray(image[:, :, ::-1])
+
+
+class Strip:
+    """An image scaled so its short side equals the network input, ready to crop.
+
+    Every square crop of the original image is a window of this strip: scaling once
+    and cutting windows is the same as cutting then scaling each crop (up to
+    sub-pixel rounding of the offset), and far cheaper when a search tries many.
+
+    With `crop_scale` > 1 (a model trained with PoseNet's crops, see
+    `TrainSettings.crop_scale`) the short side is scaled to crop_scale x the input and
+    the window of a crop is the input-sized square at the crop's centre: the network
+    sees the central 1/crop_scale of every crop, the field of view it was trained on.
+    """
+
+    def __init__(self, image: np.ndarray, input_size: int, crop_scale: float = 1.0) -> None:
+        self.height, self.width = image.shape[:2]
+        short, _ = crop_side_and_span(self.width, self.height)
+        self.input_size = input_size
+        self.side = max(input_size, round(input_size * crop_scale))  # a crop's side here
+        self.scale = self.side / short
+        # Where the input-sized window sits inside a crop's scaled square.
+        self.margin = (self.side - input_size) / 2
+        size = (
+            max(self.side, round(self.width * self.scale)),
+            max(self.side, round(self.height * self.scale)),
+        )
+        interpolation = cv2.INTER_AREA if self.scale < 1 else cv2.INTER_LINEAR
+        scaled = cv2.resize(image, size, interpolation=interpolation)
+        self.pixels = torch.from_numpy(np.ascontiguousarray(scaled.transpose(2, 0, 1)))
+
+    def window(self, crop: Crop) -> tuple[int, int]:
+        """Top-left corner in the strip of the window that shows `crop`."""
+        x = min(round(crop.x * self.scale + self.margin), self.pixels.shape[2] - self.input_size)
+        y = min(round(crop.y * self.scale + self.margin), self.pixels.shape[1] - self.input_size)
+        return y, x
+
+    def cut(self, corner: tuple[int, int]) -> torch.Tensor:
+        """uint8 [3, s, s] network input at a strip corner."""
+        y, x = corner
+        s = self.input_size
+        return self.pixels[:, y : y + s, x : x + s]
+
+    def centre_crop(self) -> Crop:
+        _, span = crop_side_and_span(self.width, self.height)
+        return crop_at(span // 2, self.width, self.height)
+
+
+def image_fingerprint(image: np.ndarray) -> int:
+    """A 64-bit integer that names an image by its pixels (shape included).
+
+    Crop searches seed their per-query random stream from it: the same image always
+    gets the same stream, different images independent ones.
+    """
+    pixels = np.ascontiguousarray(image)
+    digest = hashlib.blake2b(str(pixels.shape).encode(), digest_size=8)
+    digest.update(pixels.tobytes())
+    return int.from_bytes(digest.digest(), "little")
+
+
+def to_network_input(batch: torch.Tensor) -> torch.Tensor:
+    """uint8 [B, 3, s, s] -> float in [0, 1]; the backbone normalises further."""
+    return batch.float().div_(255.0)

@@ -1,0 +1,165 @@
+"""The three plugin interfaces. Implementations live in plugins/ or in other packages."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping, Sequence
+from typing import ClassVar
+
+import numpy as np
+import torch
+
+from relocfw.core.values import Crop, PoseOutput
+
+CropDistance = Callable[[Sequence[Crop]], np.ndarray]
+"""Scores a batch of crops in one forward pass: [n] distances to the map, lower is closer.
+
+The pipeline's distance also carries `query_seed`, an integer fingerprint of the query
+image; read it with `query_seed(distance)`.
+"""
+
+
+def query_seed(distance: CropDistance) -> int:
+    """Seed material of the query being searched, for searches that draw random numbers.
+
+    Mix it with the search's own seed (e.g. `np.random.default_rng([seed,
+    query_seed(distance)])`): every query then gets its own stream, so the queries of a
+    test split are independent runs, while the same image still gives the same crop.
+    0 when the caller's `distance` is a plain function that carries none.
+    """
+    return int(getattr(distance, "query_seed", 0))
+
+
+class Backbone(torch.nn.Module, ABC):
+    """Image batch -> pose and descriptor.
+
+    Inputs are float tensors [B, 3, input_size, input_size], RGB in [0, 1]; the backbone
+    owns its own normalisation so weights and preprocessing cannot drift apart.
+
+    Positions are regressed in a normalised frame (training positions minus their mean,
+    divided by their spread) and mapped back here, because a network regresses values
+    near zero with unit spread far better than raw world coordinates. The statistics are
+    buffers, so they travel with the checkpoint.
+    """
+
+    input_size: int
+    feature_dim: int
+    # Constructor options that only change inference (e.g. Monte Carlo samples): they
+    # are left out of the checkpoint key, so such variants share one trained model.
+    test_time_options: tuple[str, ...] = ()
+    # Options left out of the checkpoint key while they hold these values: an option
+    # added after models were trained, whose default is what those models are, keeps
+    # their key (and their cached checkpoints).
+    key_defaults: ClassVar[Mapping[str, object]] = {}
+    # Options replaced when a saved model is rebuilt: its state already holds the
+    # weights, so e.g. an ImageNet weights file is not needed (or read) again.
+    rebuild_overrides: dict[str, object] = {}
+    # Run inference in channels-last memory layout: on CPU it makes GoogLeNet's
+    # convolutions and poolings about 1.5x faster for one image (benchmarks/). A
+    # backbone whose forward needs contiguous NCHW tensors (e.g. `.view`) sets False.
+    channels_last: bool = True
+    # True when the weights start from training elsewhere (e.g. ImageNet): settings
+    # that only fine-tune (preset=paper's lr 1e-5) refuse a backbone without it.
+    pretrained: bool = False
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("position_mean", torch.zeros(3))
+        self.register_buffer("position_scale", torch.ones(()))
+        # The field of view of the training crops (TrainSettings.crop_scale): the
+        # pipeline shows the network the central 1/crop_scale of every query crop.
+        self.register_buffer("crop_scale", torch.ones(()))
+
+    def set_position_normalisation(self, mean: np.ndarray, scale: float) -> None:
+        """Fix the frame positions are regressed in; call once before training."""
+        self.position_mean.copy_(torch.as_tensor(mean, dtype=torch.float32))
+        self.position_scale.fill_(float(scale))
+
+    def set_crop_scale(self, crop_scale: float) -> None:
+        """Record the training crops' crop_scale; training calls it."""
+        self.crop_scale.fill_(float(crop_scale))
+
+    def to_world_positions(self, normalised: torch.Tensor) -> torch.Tensor:
+        """Map the network's raw position output to metres in the world frame."""
+        return normalised * self.position_scale + self.position_mean
+
+    @abstractmethod
+    def forward(self, images: torch.Tensor) -> PoseOutput:
+        """Pose and descriptor of each image in the batch."""
+
+    # Optional pair of hooks for scoring=shared (see relocfw.core.window_pooling): a backbone
+    # whose descriptor is a layer on the global average of its last convolutional maps
+    # can describe every crop window of a strip from ONE pass over the whole strip.
+    def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
+        """[B, C, h, w] last convolutional maps of inputs of any size, before pooling."""
+        raise NotImplementedError(f"{type(self).__name__} has no feature_maps")
+
+    def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
+        """[n, D] descriptors from [n, C] average-pooled `feature_maps`."""
+        raise NotImplementedError(f"{type(self).__name__} has no describe_pooled")
+
+    @property
+    def shares_strip(self) -> bool:
+        """True when both optional hooks are provided (scoring=shared is possible)."""
+        cls = type(self)
+        return (
+            cls.feature_maps is not Backbone.feature_maps
+            and cls.describe_pooled is not Backbone.describe_pooled
+        )
+
+
+class SimilarityIndex(ABC):
+    """The map: training descriptors, queried for how far a descriptor is from it."""
+
+    @abstractmethod
+    def fit(self, features: np.ndarray) -> None:
+        """Build the map from [N, D] training descriptors."""
+
+    @abstractmethod
+    def distance(self, features: np.ndarray) -> np.ndarray:
+        """[n] distance of each of [n, D] descriptors to the map; lower = more similar."""
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The fitted map as tensors, for model files; optional for plugins."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be saved in a model file")
+
+    def load_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore what `state` returned."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be loaded from a model file")
+
+    def check_map_size(self, count: int) -> None:  # noqa: B027 - optional hook, no-op default
+        """Raise ConfigError if a map of `count` descriptors cannot be built.
+
+        Called before training, so an impossible option (k-means with more clusters
+        than images) fails in a second rather than after the model is trained.
+        """
+
+
+class CropSearch(ABC):
+    """Chooses the square crop of a width x height image whose descriptor is closest.
+
+    The square's side is min(width, height); a search moves it along the longer axis.
+    """
+
+    @abstractmethod
+    def search(self, width: int, height: int, distance: CropDistance) -> Crop:
+        """Return the chosen crop; `distance` scores many crops per call.
+
+        A search that draws random numbers seeds them from its own seed and
+        `query_seed(distance)`, so each query is searched independently.
+        `Relocalizer.localize_many` runs several queries' searches at once, each in a
+        thread: keep per-query state in local variables, not on `self`, and draw
+        from your own generator, never a global one.
+        """
+
+
+def crop_side_and_span(width: int, height: int) -> tuple[int, int]:
+    """Square side and how far it can slide along the longer axis."""
+    side = min(width, height)
+    return side, max(width, height) - side
+
+
+def crop_at(offset: int, width: int, height: int) -> Crop:
+    """The square crop at `offset` pixels along the longer axis."""
+    side = min(width, height)
+    return Crop(offset, 0, side) if width >= height else Crop(0, offset, side)

@@ -1,0 +1,2 @@
+"""The reports: evaluation of a split, metrics, statistics over training seeds,
+comparisons of methods, figures and the crop-premise diagnosis."""

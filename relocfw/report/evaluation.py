@@ -1,0 +1,199 @@
+"""Running a method over a test split and measuring its errors."""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from relocfw.core.geometry import QUATERNION_MINIMUM, orientation_error_deg, position_error
+from relocfw.core.pipeline import Relocalizer
+from relocfw.core.progress import Progress
+from relocfw.core.values import Crop, Localization, Pose
+from relocfw.data.frames import Frame
+from relocfw.report.metrics import accuracy_metrics, failed_as_infinite
+from relocfw.report.uncertainty import uncertainty_quality
+
+
+@dataclass(frozen=True)
+class MethodResult:
+    """One method's answers on a split, aligned with its frames.
+
+    Errors of a query answered without a finite pose are +inf (relocfw.report.metrics).
+    """
+
+    method: str
+    frames: tuple[Frame, ...]
+    answers: tuple[Localization, ...]
+
+    def failed(self) -> np.ndarray:
+        """[N] True where the answer has no usable pose: any non-finite number, or a
+        quaternion of (near) zero norm. Both of its errors are then +inf."""
+        positions = np.stack([a.pose.position for a in self.answers])
+        quaternions = np.stack([a.pose.quaternion for a in self.answers])
+        finite = np.isfinite(positions).all(axis=1) & np.isfinite(quaternions).all(axis=1)
+        norms = np.linalg.norm(np.where(np.isfinite(quaternions), quaternions, 0.0), axis=1)
+        return ~finite | (norms < QUATERNION_MINIMUM)
+
+    def position_errors(self) -> np.ndarray:
+        errors = position_error(
+            np.stack([a.pose.position for a in self.answers]),
+            np.stack([f.pose.position for f in self.frames]),
+        )
+        return np.where(self.failed(), np.inf, failed_as_infinite(errors))
+
+    def orientation_errors(self) -> np.ndarray:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            errors = orientation_error_deg(
+                np.stack([a.pose.quaternion for a in self.answers]),
+                np.stack([f.pose.quaternion for f in self.frames]),
+            )
+        return np.where(self.failed(), np.inf, failed_as_infinite(errors))
+
+
+def evaluate(
+    method: str,
+    relocalizer: Relocalizer,
+    frames: Sequence[Frame],
+    images: Sequence[np.ndarray],
+    quiet: bool = False,
+    warm_up: bool = True,
+) -> MethodResult:
+    """Localize every image with `relocalizer`.
+
+    With `warm_up`, the first image is localized once, untimed and discarded, before
+    the timed run: the first query pays for lazy allocations, thread pools and kernel
+    choices, and timing it would charge whichever method runs first.
+    """
+    if warm_up and len(images):
+        relocalizer.localize(images[0])
+    progress = Progress(len(frames), f"relocalizing ({method})", quiet=quiet)
+    answers = []
+    group = getattr(relocalizer, "queries_at_once", 1)  # any object with localize works
+    for start in range(0, len(images), group):
+        # Groups of queries share forward passes (Relocalizer.localize_many); one
+        # query at a time when queries_at_once is 1, its latency then its own.
+        if group == 1:
+            answers.append(relocalizer.localize(images[start]))
+        else:
+            answers += relocalizer.localize_many(images[start : start + group], group)
+        progress.advance(min(group, len(images) - start))
+    progress.close()
+    return MethodResult(method, tuple(frames), tuple(answers))
+
+
+def constant_answer(method: str, pose: Pose, frames: Sequence[Frame]) -> MethodResult:
+    """Every query answered with the same pose: the floor any method must beat."""
+    answer = Localization(pose, Crop(0, 0, 0), float("nan"), 0, 0.0)
+    return MethodResult(method, tuple(frames), tuple(answer for _ in frames))
+
+
+def summarise(result: MethodResult) -> dict[str, float | int | str]:
+    """The field's accuracy metrics (relocfw.report.metrics.accuracy_metrics) and costs.
+
+    Time is reported as the median (robust to a slow moment of the machine) and the
+    mean over the queries of the timed (warmed-up) run. A failed query counts as
+    infinitely wrong. A sampled method (MC dropout) also gets its uncertainty
+    measures (`uncertainty_columns`).
+    """
+    positions = result.position_errors()
+    summary = {
+        "method": result.method,
+        "queries": len(positions),
+        **accuracy_metrics(positions, result.orientation_errors()),
+        "median_seconds_per_query": float(np.median([a.seconds for a in result.answers])),
+        "mean_seconds_per_query": float(np.mean([a.seconds for a in result.answers])),
+        "mean_network_passes": float(np.mean([a.network_passes for a in result.answers])),
+        "mean_crops_scored": float(np.mean([a.evaluations for a in result.answers])),
+    }
+    return summary | uncertainty_columns(result)
+
+
+def uncertainty_quality_of(result: MethodResult) -> dict[str, object] | None:
+    """relocfw.report.uncertainty's measures of a sampled method's spreads; None if unsampled."""
+    return uncertainty_quality(
+        result.position_errors(),
+        result.orientation_errors(),
+        np.array([a.position_spread for a in result.answers]),
+        np.array([a.orientation_spread_deg for a in result.answers]),
+    )
+
+
+def uncertainty_columns(result: MethodResult) -> dict[str, float]:
+    """Flat summary columns of the uncertainty measures (none for an unsampled method)."""
+    quality = uncertainty_quality_of(result)
+    if quality is None:
+        return {}
+    columns = {}
+    for kind, unit in (("position", "m"), ("orientation", "deg")):
+        measures = quality[kind]
+        columns[f"{kind}_spread_error_spearman"] = measures["spearman_spread_error"]
+        columns[f"{kind}_ause_{unit}"] = measures["ause"]
+        for share, median in measures["median_after_rejecting"].items():
+            columns[f"median_{kind}_{unit}_rejecting_{share}"] = median
+    return columns
+
+
+ANSWER_COLUMNS = (
+    "crop_x",
+    "crop_y",
+    "crop_size",
+    "distance",
+    "crops_scored",
+    "network_passes",
+    "seconds",
+    "position_spread_m",
+    "orientation_spread_deg",
+)
+POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
+CSV_COLUMNS = (
+    "method",
+    "frame",
+    *(f"true_{c}" for c in POSE_COLUMNS),
+    *(f"est_{c}" for c in POSE_COLUMNS),
+    "position_error_m",
+    "orientation_error_deg",
+    *ANSWER_COLUMNS,
+)
+
+
+def answer_cells(answer: Localization) -> list[str | int]:
+    """How the answer was found, in ANSWER_COLUMNS order: crop, similarity, cost, spread."""
+    return [
+        answer.crop.x,
+        answer.crop.y,
+        answer.crop.size,
+        f"{answer.distance:.6f}",
+        answer.evaluations,
+        f"{answer.network_passes:.3f}",
+        f"{answer.seconds:.6f}",
+        f"{answer.position_spread:.6f}",
+        f"{answer.orientation_spread_deg:.4f}",
+    ]
+
+
+def per_image_csv(results: Sequence[MethodResult]) -> str:
+    """One row per method and query image, everything needed to redo the statistics."""
+    stream = io.StringIO()
+    writer = csv.writer(stream)
+    writer.writerow(CSV_COLUMNS)
+    for result in results:
+        rows = zip(
+            result.frames,
+            result.answers,
+            result.position_errors(),
+            result.orientation_errors(),
+            strict=True,
+        )
+        for frame, answer, pos_err, ori_err in rows:
+            writer.writerow(
+                [result.method, frame.name]
+                + [f"{v:.6f}" for v in (*frame.pose.position, *frame.pose.quaternion)]
+                + [f"{v:.6f}" for v in (*answer.pose.position, *answer.pose.quaternion)]
+                + [f"{pos_err:.6f}", f"{ori_err:.4f}"]
+                + answer_cells(answer)
+            )
+    return stream.getvalue()

@@ -1,0 +1,211 @@
+"""The comparison figures (matplotlib, Agg backend: no display needed)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
+import numpy as np  # noqa: E402
+from sklearn.manifold import TSNE  # noqa: E402
+
+from relocfw.data.frames import Frame, positions_of  # noqa: E402
+from relocfw.model.checkpoints import atomic_write  # noqa: E402
+from relocfw.report.evaluation import MethodResult  # noqa: E402
+
+
+def save(figure: plt.Figure, path: Path) -> Path:
+    with atomic_write(path, "wb") as stream:
+        figure.savefig(stream, format="png", dpi=110, bbox_inches="tight")
+    plt.close(figure)
+    return Path(path)
+
+
+HISTOGRAM_KINDS = {
+    # kind: (axis label, good threshold, bad threshold, unit, minimum axis extent)
+    "position": ("position error (m)", 0.5, 1.0, " m", 1.0),
+    "orientation": ("orientation error (deg)", 15.0, 20.0, "°", 20.0),
+}
+
+
+def error_histogram(
+    results: Sequence[MethodResult], kind: str, path: Path, title: str = ""
+) -> Path:
+    """Figure 7: histogram of position or orientation errors, methods overlaid.
+
+    The legend gives each method's share under the paper's good threshold
+    (0.5 m / 15 deg) and over its bad one (1.0 m / 20 deg).
+    """
+    label, good, bad, unit, extent = HISTOGRAM_KINDS[kind]
+    errors = [
+        r.position_errors() if kind == "position" else r.orientation_errors() for r in results
+    ]
+    finite = [e[np.isfinite(e)] for e in errors]
+    top = max([extent, *(float(f.max()) for f in finite if len(f))])
+    bins = np.linspace(0, top, 30)
+    figure, axis = plt.subplots(figsize=(7, 4.5))
+    for result, error in zip(results, errors, strict=True):
+        under, over = np.mean(error < good), np.mean(error > bad)
+        shares = f"{under:.0%} < {good:g}{unit}, {over:.0%} > {bad:g}{unit}"
+        failed = int(np.sum(~np.isfinite(error)))
+        if failed:
+            shares += f", {failed} failed (in the last bin)"
+        # A failed query (inf) is drawn in the last bin, never left out.
+        axis.hist(
+            np.minimum(error, top),
+            bins=bins,
+            histtype="step",
+            linewidth=1.8,
+            label=f"{result.method}: {shares}",
+        )
+    for value in (good, bad):
+        axis.axvline(value, color="grey", linestyle=":", linewidth=1)
+    axis.set_xlabel(label)
+    axis.set_ylabel("queries")
+    axis.legend(fontsize=7)
+    axis.set_title(f"{kind.capitalize()} error histogram {title}".strip())
+    return save(figure, path)
+
+
+def error_curves(results: Sequence[MethodResult], path: Path, title: str = "") -> Path:
+    """Figure 8: position and orientation error of every test image, in order."""
+    figure, (top, bottom) = plt.subplots(2, 1, figsize=(12, 6), sharex=True)
+    for axis, kind in ((top, "position"), (bottom, "orientation")):
+        errors = [
+            r.position_errors() if kind == "position" else r.orientation_errors() for r in results
+        ]
+        finite = [e[np.isfinite(e)] for e in errors]
+        ceiling = max([1e-9, *(float(f.max()) for f in finite if len(f))]) * 1.05
+        for result, error in zip(results, errors, strict=True):
+            # Failed queries (inf) are drawn at the top of the axis with an x.
+            (line,) = axis.plot(np.minimum(error, ceiling), linewidth=1.2, label=result.method)
+            failed = np.flatnonzero(~np.isfinite(error))
+            if len(failed):
+                axis.plot(failed, np.full(len(failed), ceiling), "x", color=line.get_color())
+    top.set_ylabel("position error (m)")
+    bottom.set_ylabel("orientation error (deg)")
+    bottom.set_xlabel("test image (trajectory order)")
+    top.legend(fontsize=7)
+    figure.suptitle(f"Per-image errors {title}".strip())
+    return save(figure, path)
+
+
+def trajectory_top_down(
+    train: Sequence[Frame], results: Sequence[MethodResult], path: Path, title: str = ""
+) -> Path:
+    """Top-down (x, y) view: training path, test ground truth and each method's estimates."""
+    figure, axis = plt.subplots(figsize=(8, 7))
+    train_xy = positions_of(train)[:, :2]
+    axis.plot(*train_xy.T, ".", color="lightgrey", markersize=3, label="training poses")
+    truth = np.stack([f.pose.position for f in results[0].frames])[:, :2]
+    axis.plot(*truth.T, "-", color="black", linewidth=2, label="test ground truth")
+    for result in results:
+        estimates = np.stack([a.pose.position for a in result.answers])[:, :2]
+        axis.plot(*estimates.T, "o", markersize=3, alpha=0.8, label=result.method)
+    axis.set_aspect("equal")
+    axis.set_xlabel("x (m)")
+    axis.set_ylabel("y (m)")
+    axis.legend(fontsize=7)
+    axis.set_title(f"Trajectory, top-down {title}".strip())
+    return save(figure, path)
+
+
+def tsne_of_map(
+    features: np.ndarray,
+    centres: np.ndarray,
+    labels: np.ndarray,
+    path: Path,
+    seed: int = 0,
+    title: str = "",
+) -> Path:
+    """Figure 5: t-SNE of the standardised training descriptors and k-means centres.
+
+    Descriptors are coloured by their cluster; centres are black crosses.
+    """
+    points = np.concatenate([features, centres])
+    perplexity = float(min(30.0, max(2.0, (len(points) - 1) / 3)))
+    embedded = TSNE(perplexity=perplexity, init="pca", random_state=seed).fit_transform(points)
+    figure, axis = plt.subplots(figsize=(7, 6))
+    axis.scatter(*embedded[: len(features)].T, c=labels, cmap="tab20", s=8, alpha=0.7)
+    axis.scatter(
+        *embedded[len(features) :].T,
+        marker="x",
+        color="black",
+        s=40,
+        label=f"{len(centres)} k-means centres",
+    )
+    axis.legend(fontsize=8)
+    axis.set_title(f"t-SNE of the map's descriptors {title}".strip())
+    axis.set_xticks([])
+    axis.set_yticks([])
+    return save(figure, path)
+
+
+def uncertainty_against_error(
+    result: MethodResult, quality: dict, path: Path, title: str = ""
+) -> Path:
+    """The authors' view, one point per query: spread against error (position and
+    orientation), and each kind's sparsification curve against its oracle."""
+    figure, axes = plt.subplots(2, 2, figsize=(11, 8))
+    spreads = {
+        "position": np.array([a.position_spread for a in result.answers]),
+        "orientation": np.array([a.orientation_spread_deg for a in result.answers]),
+    }
+    errors = {"position": result.position_errors(), "orientation": result.orientation_errors()}
+    for row, (kind, unit) in enumerate((("position", "m"), ("orientation", "deg"))):
+        measures = quality[kind]
+        scatter, curves = axes[row]
+        finite = np.isfinite(errors[kind])
+        scatter.scatter(spreads[kind][finite], errors[kind][finite], s=10)
+        scatter.set_xlabel(f"{kind} spread ({unit})")
+        scatter.set_ylabel(f"{kind} error ({unit})")
+        scatter.set_title(f"Spearman {measures['spearman_spread_error']:.2f}", fontsize=9)
+        sparsification = measures["sparsification"]
+        curves.plot(
+            sparsification["fractions"], sparsification["by_uncertainty"], label="by spread"
+        )
+        curves.plot(sparsification["fractions"], sparsification["oracle"], label="by true error")
+        curves.set_xlabel("fraction of queries removed (most uncertain first)")
+        curves.set_ylabel(f"median {kind} error of the rest ({unit})")
+        curves.set_title(f"AUSE {measures['ause']:.3g} {unit}", fontsize=9)
+        curves.legend(fontsize=8)
+    figure.suptitle(f"{result.method}: uncertainty against error {title}".strip())
+    figure.tight_layout()
+    return save(figure, path)
+
+
+def training_curve(history: dict[str, list[float]], path: Path, title: str = "") -> Path:
+    """Per-step losses of a training run: the total and each head's (log scale), the
+    main head's errors, and the learning rate with any learned loss weights."""
+    figure, (losses, errors, schedule) = plt.subplots(1, 3, figsize=(15, 4))
+    steps = np.arange(1, len(history.get("loss", [])) + 1)
+    for name in ("loss", "main", "aux1", "aux2"):
+        if history.get(name):
+            losses.plot(steps, history[name], label=name, linewidth=0.8)
+    losses.set_yscale("log")
+    losses.set_title("loss (total and weighted per head)", fontsize=9)
+    losses.legend(fontsize=8)
+    if history.get("main_position_m"):
+        errors.plot(steps, history["main_position_m"], label="position (m)", linewidth=0.8)
+        errors.plot(steps, history["main_orientation"], label="||q - q^||", linewidth=0.8)
+        errors.legend(fontsize=8)
+    errors.set_title("main head's batch errors", fontsize=9)
+    if history.get("lr"):
+        schedule.plot(steps, history["lr"], label="learning rate", color="black")
+        schedule.set_yscale("log")
+    weights = schedule.twinx()
+    for name in ("s_position", "s_orientation"):
+        if history.get(name):
+            weights.plot(steps, history[name], label=name, linewidth=0.8)
+    if history.get("s_position"):
+        weights.legend(fontsize=8, loc="lower left")
+        weights.set_ylabel("learned s (log variance)")
+    schedule.set_title("learning rate and learned loss weights", fontsize=9)
+    for axis in (losses, errors, schedule):
+        axis.set_xlabel("step")
+    figure.suptitle(f"training {title}".strip())
+    figure.tight_layout()
+    return save(figure, path)

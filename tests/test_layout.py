@@ -1,0 +1,159 @@
+"""The package tree is the design: five parts, imports running one way, no cycle.
+
+Every `import` in relocfw/ is read from the source (function-level ones too, since a
+lazy import hides a cycle without removing it), so the checks hold for code paths
+the other tests never run.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+from pathlib import Path
+
+import pytest
+
+import relocfw
+
+PACKAGE = Path(relocfw.__file__).parent
+PARTS = ("core", "model", "data", "report", "app")
+# What each part may import besides itself: app -> report -> model, data -> core.
+MAY_IMPORT = {
+    "core": set(),
+    "model": {"core"},
+    "data": {"core"},
+    "report": {"core", "model", "data"},
+    "app": {"core", "model", "data", "report", "plugins"},
+}
+
+
+def module_name(path: Path) -> str:
+    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def relocfw_imports(path: Path) -> set[str]:
+    """The relocfw modules `path` imports: `from relocfw.x import y` names relocfw.x.y
+    when y is a module of its own, else relocfw.x."""
+    tree = ast.parse(path.read_text(), str(path))
+    # Imports under `if TYPE_CHECKING:` name types for annotations and never run.
+    typing_only = {
+        id(inner)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING"
+        for inner in ast.walk(node)
+    }
+    found = set()
+    for node in ast.walk(tree):
+        if id(node) in typing_only:
+            continue
+        if isinstance(node, ast.Import):
+            found |= {a.name for a in node.names if a.name.split(".")[0] == "relocfw"}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            if node.module.split(".")[0] != "relocfw":
+                continue
+            for alias in node.names:
+                child = f"{node.module}.{alias.name}"
+                found.add(
+                    child
+                    if (PACKAGE.parent / child.replace(".", "/")).with_suffix(".py").exists()
+                    else node.module
+                )
+    return found
+
+
+MODULES = {
+    module_name(path): relocfw_imports(path)
+    for path in sorted(PACKAGE.rglob("*.py"))
+    if "__pycache__" not in path.parts
+}
+
+
+def part_of(module: str) -> str:
+    """'core', 'model', ... ; 'facade' for relocfw itself and relocfw.__main__."""
+    pieces = module.split(".")
+    return pieces[1] if len(pieces) > 2 or (len(pieces) == 2 and pieces[1] in PARTS) else "facade"
+
+
+def test_every_module_lives_in_one_of_the_five_parts():
+    loose = [
+        m for m in MODULES if part_of(m) == "facade" and m not in ("relocfw", "relocfw.__main__")
+    ]
+    assert not loose, f"modules outside core/model/data/report/app: {loose}"
+    assert {part_of(m) for m in MODULES} == {*PARTS, "facade"}
+
+
+@pytest.mark.parametrize("part", PARTS)
+def test_imports_run_one_way(part):
+    wrong = sorted(
+        f"{module} imports {target}"
+        for module, targets in MODULES.items()
+        if part_of(module) == part
+        for target in targets
+        if part_of(target) not in MAY_IMPORT[part] | {part}
+    )
+    assert not wrong, f"{part} may import only {sorted(MAY_IMPORT[part])}: {wrong}"
+
+
+def test_no_import_cycle():
+    graph = {m: {t for t in targets if t in MODULES and t != m} for m, targets in MODULES.items()}
+    # Parents are imported before their children; the facade imports the parts, and a
+    # part's module imports the facade's package only as a parent, not as an edge.
+    graph = {m: {t for t in targets if part_of(t) != "facade"} for m, targets in graph.items()}
+    state: dict[str, str] = {}
+    path: list[str] = []
+
+    def visit(module: str) -> None:
+        state[module] = "open"
+        path.append(module)
+        for target in sorted(graph[module]):
+            if state.get(target) == "open":
+                cycle = path[path.index(target) :] + [target]
+                raise AssertionError("import cycle: " + " -> ".join(cycle))
+            if target not in state:
+                visit(target)
+        path.pop()
+        state[module] = "done"
+
+    for module in sorted(graph):
+        if module not in state:
+            visit(module)
+
+
+def test_the_pipeline_does_not_know_the_model_file():
+    # The file format builds on the Relocalizer; the reverse edge was the old cycle.
+    assert "relocfw.model.model_file" not in MODULES["relocfw.core.pipeline"]
+
+
+@pytest.mark.parametrize("flat", sorted(relocfw.FLAT_PATHS))
+def test_plugins_written_for_the_flat_paths_still_import(flat):
+    old = importlib.import_module(f"relocfw.{flat}")
+    assert old is importlib.import_module(relocfw.FLAT_PATHS[flat])
+
+
+def test_the_public_names_stay_importable_from_the_top():
+    from relocfw import Backbone, CropSearch, Relocalizer, SimilarityIndex, load_model
+    from relocfw.interfaces import Backbone as FlatBackbone
+
+    assert FlatBackbone is Backbone
+    assert callable(load_model) and Relocalizer and CropSearch and SimilarityIndex
+
+
+def test_only_the_app_sees_hydra_or_omegaconf():
+    def third_party(path: Path) -> set[str]:
+        names = set()
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                names |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                names.add(node.module.split(".")[0])
+        return names
+
+    seeing = sorted(
+        module_name(path)
+        for path in PACKAGE.rglob("*.py")
+        if "__pycache__" not in path.parts
+        and part_of(module_name(path)) != "app"
+        and third_party(path) & {"hydra", "omegaconf"}
+    )
+    assert not seeing, f"Hydra/OmegaConf outside relocfw.app: {seeing}"
