@@ -35,6 +35,7 @@ SETTINGS = {
     "ga plain": (GeneticCropSearch, "plain"),
     "ga shared": (GeneticCropSearch, "shared"),
     "sweep plain": (SweepCrop, "plain"),
+    "sweep shared": (SweepCrop, "shared"),
 }
 
 

@@ -52,10 +52,14 @@ FLAT_PATHS = {
     "imaging": "relocfw.core.imaging",
     "interfaces": "relocfw.core.interfaces",
     "options": "relocfw.core.options",
+    "pipeline": "relocfw.core.pipeline",
     "pose_head": "relocfw.model.pose_head",
+    "sampling": "relocfw.core.sampling",
     "standardise": "relocfw.core.standardise",
     "values": "relocfw.core.values",
+    "window_pooling": "relocfw.core.window_pooling",
 }
 for _flat, _moved in FLAT_PATHS.items():
     sys.modules.setdefault(f"relocfw.{_flat}", importlib.import_module(_moved))
+    globals()[_flat] = sys.modules[f"relocfw.{_flat}"]  # relocfw.interfaces.Backbone too
 del _flat, _moved

@@ -1,5 +1,5 @@
 """The core: plugin interfaces, values, the Relocalizer pipeline and its helpers.
 
-Plain Python + torch; imports nothing from relocfw's other parts, so a plugin or a
-robot-side script needs only this.
+Imports nothing from relocfw's other parts (tests/test_layout.py checks it): a plugin
+builds on this part alone.
 """

@@ -14,7 +14,10 @@ import torch
 from torch import nn
 
 from relocfw.core.errors import ConfigError
-from relocfw.core.sampling import sample_statistics
+from relocfw.core.sampling import (  # noqa: F401 (mean_quaternions: its 0.1 path)
+    mean_quaternions,
+    sample_statistics,
+)
 from relocfw.core.values import PoseOutput
 
 
