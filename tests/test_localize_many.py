@@ -134,11 +134,47 @@ def test_lockstep_waits_for_every_running_member_then_answers_all_at_once():
     ]
     for thread in threads:
         thread.start()
+    lockstep.serve()  # returns once every member has left
     for thread in threads:
         thread.join()
     assert results == {0: [10, 20], 1: [30], 2: [40, 50]}
     # Round one has all three; member 1 then leaves and round two has the other two.
     assert merged == [[1, 3, 4], [2, 5]] and lockstep.calls == 2
+
+
+def test_lockstep_runs_every_call_on_the_serving_thread_and_hands_errors_back():
+    ran_on = []
+
+    def together(requests):
+        ran_on.append(threading.get_ident())
+        return [r + 1 for r in requests]
+
+    def solo(value):
+        ran_on.append(threading.get_ident())
+        if value < 0:
+            raise ValueError("negative")
+        return value * 2
+
+    lockstep = Lockstep(2, together)
+    results, errors = {}, {}
+
+    def member(m, value):
+        try:
+            doubled = lockstep.call(m, lambda: solo(value))
+            results[m] = lockstep.ask(m, doubled)
+        except ValueError as error:
+            errors[m] = str(error)
+        finally:
+            lockstep.leave(m)
+
+    threads = [threading.Thread(target=member, args=(m, v)) for m, v in ((0, 3), (1, -1))]
+    for thread in threads:
+        thread.start()
+    lockstep.serve()
+    for thread in threads:
+        thread.join()
+    assert results == {0: 7} and errors == {1: "negative"}
+    assert set(ran_on) == {threading.get_ident()} and len(ran_on) == 3
 
 
 def test_batched_seconds_include_sampling_and_leave_the_backbone_and_rng_alone(scene, monkeypatch):

@@ -206,8 +206,6 @@ class Relocalizer:
             self.retrieval_k, self.crop_samples, configured_samples(backbone), self.crop_scale
         )
         self._threadpools: ThreadpoolController | None = None  # found on first query
-        self._map_lock = threading.Lock()
-        self._network_lock = threading.Lock()
         self._cells: int | None = None  # see _window_cells
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
@@ -293,13 +291,12 @@ class Relocalizer:
         return self._threadpools.limit(limits=1, user_api="blas")
 
     def _map_distance(self, features: np.ndarray) -> np.ndarray:
-        # The lock: localize_many's searches may look up the map from several threads
-        # (scoring=shared), and the BLAS thread limit is process-wide.
-        with self._map_lock, self._one_blas_thread():
+        # localize_many makes every lookup on its serving thread, so no lock is needed.
+        with self._one_blas_thread():
             return self.index.distance(features)
 
     def _retrieved_pose(self, features: np.ndarray) -> Pose:
-        with self._map_lock, self._one_blas_thread():
+        with self._one_blas_thread():
             distances, indices = self.index.neighbours(features[None], self.retrieval_k)
         weights = 1.0 / (distances[0] + 1e-6)
         weights /= weights.sum()
@@ -330,10 +327,7 @@ class Relocalizer:
         """The trunk's maps of the whole strip: one pass for every candidate window."""
         pixels = to_network_input(strip.pixels[None].to(self.device))
         pixels = pixels.contiguous(memory_format=self.memory_format)
-        # localize_many's searches reach here from several threads: one network pass
-        # at a time, each with all of torch's threads (no oversubscription).
-        with self._network_lock:
-            maps = self.backbone.feature_maps(pixels)[0]
+        maps = self.backbone.feature_maps(pixels)[0]
         height, width = strip.pixels.shape[1:]
         return StripMaps(maps, height, width, self.backbone.input_size, self._window_cells())
 
@@ -349,14 +343,12 @@ class Relocalizer:
         if self._cells is None:
             side = self.backbone.input_size
             blank = torch.zeros(1, 3, side, side, device=self.device)
-            with self._network_lock:
-                self._cells = int(self.backbone.feature_maps(blank).shape[-1])
+            self._cells = int(self.backbone.feature_maps(blank).shape[-1])
         return self._cells
 
     @torch.inference_mode()
     def _shared_features(self, maps: StripMaps, corners: list[tuple[int, int]]) -> np.ndarray:
-        with self._network_lock:
-            return self.backbone.describe_pooled(maps.pooled(corners)).double().cpu().numpy()
+        return self.backbone.describe_pooled(maps.pooled(corners)).double().cpu().numpy()
 
     def localize(self, image: np.ndarray) -> Localization:
         """Pose of one RGB image (H x W x 3 uint8) through the crop search."""
@@ -392,7 +384,9 @@ class Relocalizer:
         started = time.perf_counter()
         lockstep = Lockstep(len(images), self._score_together)
         runs = [
-            QueryRun(self, image, partial(self._ask, lockstep, member))
+            QueryRun(
+                self, image, partial(self._ask, lockstep, member), partial(lockstep.call, member)
+            )
             for member, image in enumerate(images)
         ]
         failures: dict[int, BaseException] = {}
@@ -418,6 +412,7 @@ class Relocalizer:
             # Members that never started must not be waited for by those that did.
             for member in range(started_threads, len(runs)):
                 lockstep.leave(member)
+            lockstep.serve()  # every network pass on this thread (relocfw.core.lockstep)
             for thread in threads[:started_threads]:
                 thread.join()
         if failures:

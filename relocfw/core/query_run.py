@@ -10,7 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from functools import cached_property
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -36,13 +36,23 @@ class QueryRun:
         image: the query, H x W x 3 uint8 RGB.
         score_plain: scores new plain windows; the relocalizer's own, or a lockstep
             batcher's that scores many queries' windows in one forward pass.
+        on_network: runs a piece of network work (shared scoring's passes) and returns
+            its result; by default here, in localize_many on the lockstep's serving
+            thread.
     """
 
-    def __init__(self, relocalizer: Relocalizer, image: np.ndarray, score_plain: PlainScorer):
+    def __init__(
+        self,
+        relocalizer: Relocalizer,
+        image: np.ndarray,
+        score_plain: PlainScorer,
+        on_network: Callable[[Callable[[], Any]], Any] | None = None,
+    ):
         self.started = time.perf_counter()
         self.relocalizer = relocalizer
         self.image = image
         self.score_plain = score_plain
+        self.on_network = on_network or (lambda work: work())
         backbone = relocalizer.backbone
         self.strip = Strip(image, backbone.input_size, relocalizer.crop_scale)
         # Offsets that round to the same strip window are the same network input:
@@ -71,10 +81,14 @@ class QueryRun:
         new = list(dict.fromkeys(c for c in corners if c not in self.shared))
         if not new:
             return
-        if self.strip_maps is None:
-            self.strip_maps = self.relocalizer._strip_maps(self.strip)
-        features = self.relocalizer._shared_features(self.strip_maps, new)
-        distances = self.relocalizer._map_distance(features)
+
+        def distances_of_new() -> np.ndarray:
+            if self.strip_maps is None:
+                self.strip_maps = self.relocalizer._strip_maps(self.strip)
+            features = self.relocalizer._shared_features(self.strip_maps, new)
+            return self.relocalizer._map_distance(features)
+
+        distances = self.on_network(distances_of_new)
         self.shared.update(zip(new, (float(d) for d in distances), strict=True))
 
     def distance(self, crops: Sequence[Crop]) -> np.ndarray:
