@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import model_frames, write_json  # benchmarks/, the script's own folder
+from common import device_name, model_frames, write_json  # benchmarks/, the script's own folder
 from shared_scoring import pose_difference
 
 from relocfw import load_model
@@ -51,6 +51,7 @@ def main() -> None:
     parser.add_argument(
         "--cache", type=Path, default=Path(os.environ.get("RELOCFW_CACHE", "~/.cache/relocfw"))
     )
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ...")
     parser.add_argument("--group", type=int, default=16, help="queries localized together")
     parser.add_argument("--batch-size", type=int, default=256, help="most windows per pass")
     parser.add_argument("--queries", type=int, default=0, help="first N test images; 0: all")
@@ -64,7 +65,9 @@ def main() -> None:
     images = read_images(frames[: args.queries] if args.queries else frames, quiet=True)
     for name in args.only:
         crop, scoring = SETTINGS[name]
-        relocalizer = load_model(args.model, batch_size=args.batch_size, scoring=scoring)
+        relocalizer = load_model(
+            args.model, args.device, batch_size=args.batch_size, scoring=scoring
+        )
         relocalizer.crop = crop()
         relocalizer.localize_many(images[: args.group], args.group)  # warm-up
         single, single_s = timed(lambda r=relocalizer: [r.localize(i) for i in images])
@@ -98,6 +101,7 @@ def main() -> None:
         "batch_size": args.batch_size,
         "torch_threads": torch.get_num_threads(),
         "machine": platform.machine(),
+        "device": device_name(args.device),
         "rows": rows,
     }
     write_json(report, args.out)

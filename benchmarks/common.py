@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from relocfw.core.geometry import pose_from_matrix
 from relocfw.core.values import Pose
@@ -42,3 +43,10 @@ def model_frames(relocalizer, cache_dir: Path, split: str = "test") -> list[Fram
     module, _, name = settings.pop("_target_").rpartition(".")
     dataset = getattr(importlib.import_module(module), name)(cache_dir=cache_dir, **settings)
     return dataset.frames(split)
+
+
+def device_name(device: str) -> str:
+    """What the numbers were measured on: the GPU's name, or the CPU and its threads."""
+    if torch.device(device).type == "cuda":
+        return torch.cuda.get_device_name(torch.device(device))
+    return f"cpu ({torch.get_num_threads()} torch threads)"

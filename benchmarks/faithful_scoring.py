@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import model_frames, write_json  # benchmarks/, the script's own folder
+from common import device_name, model_frames, write_json  # benchmarks/, the script's own folder
 from shared_scoring import pose_difference
 
 from relocfw import Relocalizer, load_model
@@ -48,11 +48,11 @@ AGREEMENT_NEEDED = 0.9
 COST_ALLOWED = 3.0  # x the centre crop
 
 
-def settings(model: Path, reranks: list[int]) -> list[tuple[str, Relocalizer]]:
+def settings(model: Path, reranks: list[int], device: str = "cpu") -> list[tuple[str, Relocalizer]]:
     """(name, relocalizer) of every setting, each with its own loaded copy."""
 
     def load(crop, scoring: str = "plain", rerank: int = 1) -> Relocalizer:
-        relocalizer = load_model(model, scoring=scoring)
+        relocalizer = load_model(model, device, scoring=scoring)
         relocalizer.crop, relocalizer.rerank = crop, rerank
         return relocalizer
 
@@ -93,11 +93,12 @@ def main() -> None:
     )
     parser.add_argument("--queries", type=int, default=0, help="first N test images; 0: all")
     parser.add_argument("--rerank", type=int, nargs="+", default=[1, 2, 4, 8])
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ...")
     parser.add_argument(
         "--out", type=Path, default=Path("benchmarks/results/faithful_scoring.json")
     )
     args = parser.parse_args()
-    named = settings(args.model, args.rerank)
+    named = settings(args.model, args.rerank, args.device)
     frames = model_frames(named[0][1], args.cache.expanduser())
     if args.queries:
         frames = frames[: args.queries]
@@ -152,6 +153,7 @@ def main() -> None:
         "queries": len(images),
         "torch_threads": torch.get_num_threads(),
         "machine": platform.machine(),
+        "device": device_name(args.device),
         "verdict": verdict,
         "rows": rows,
     }

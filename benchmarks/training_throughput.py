@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import torch
-from common import render_views, write_json  # benchmarks/, the script's own folder
+from common import device_name, render_views, write_json  # benchmarks/, the script's own folder
 
 from relocfw.core.imaging import to_network_input
 from relocfw.model.loss import posenet_loss
@@ -35,17 +35,19 @@ from relocfw.plugins.posenet import PoseNet
 
 
 def bare_rate(
-    backbone: PoseNet, data: TrainingImages, settings: TrainSettings, steps: int
+    backbone: PoseNet, data: TrainingImages, settings: TrainSettings, steps: int, device: str
 ) -> float:
     """Images per second of forward + loss + backward + step on one fixed batch."""
     generator = torch.Generator().manual_seed(0)
     indices = torch.randint(len(data), (settings.batch_size,), generator=generator)
     images, positions, quaternions = data.batch(indices, generator, settings.random_crops)
-    inputs = to_network_input(images)
+    inputs = to_network_input(images.to(device))
+    positions, quaternions = positions.to(device), quaternions.to(device)
+    backbone.to(device)
     if backbone.channels_last:  # as train_backbone runs it
         backbone.to(memory_format=torch.channels_last)
         inputs = inputs.contiguous(memory_format=torch.channels_last)
-    weighting = make_weighting(settings)
+    weighting = make_weighting(settings).to(device)
     optimizer = make_optimizer([backbone, weighting], settings)
     backbone.train()
 
@@ -64,14 +66,14 @@ def bare_rate(
 
 
 def loop_rate(
-    backbone: PoseNet, data: TrainingImages, settings: TrainSettings, steps: int
+    backbone: PoseNet, data: TrainingImages, settings: TrainSettings, steps: int, device: str
 ) -> float:
     """Images per second of `train_backbone` itself, new random crops every step."""
     warm = TrainSettings(**{**settings.__dict__, "iterations": 1})
-    train_backbone(backbone, data, warm, quiet=True)  # warm-up; builds the strips
+    train_backbone(backbone, data, warm, device=device, quiet=True)  # warm-up; builds strips
     timed = TrainSettings(**{**settings.__dict__, "iterations": steps})
     start = time.perf_counter()
-    train_backbone(backbone, data, timed, quiet=True)
+    train_backbone(backbone, data, timed, device=device, quiet=True)
     return steps * settings.batch_size / (time.perf_counter() - start)
 
 
@@ -82,6 +84,7 @@ def main() -> None:
     parser.add_argument("--batch-size", type=int, default=16)
     parser.add_argument("--images", type=int, default=48)
     parser.add_argument("--input-size", type=int, default=224)
+    parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ...")
     parser.add_argument(
         "--out", type=Path, default=Path("benchmarks/results/training_throughput.json")
     )
@@ -94,8 +97,8 @@ def main() -> None:
     # Alternated rounds, best of each: a busy moment on the machine should not decide.
     bare, loop = 0.0, 0.0
     for _ in range(args.rounds):
-        loop = max(loop, loop_rate(backbone, data, settings, args.steps))
-        bare = max(bare, bare_rate(backbone, data, settings, args.steps))
+        loop = max(loop, loop_rate(backbone, data, settings, args.steps, args.device))
+        bare = max(bare, bare_rate(backbone, data, settings, args.steps, args.device))
     report = {
         "geometry": {"image": [640, 480], "input": args.input_size},
         "batch_size": args.batch_size,
@@ -103,6 +106,7 @@ def main() -> None:
         "rounds": args.rounds,
         "torch_threads": torch.get_num_threads(),
         "machine": platform.processor() or platform.machine(),
+        "device": device_name(args.device),
         "bare_images_per_second": bare,
         "train_images_per_second": loop,
         "train_share_of_bare": loop / bare,
