@@ -210,6 +210,26 @@ class Relocalizer:
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
 
+    def with_backbone(self, backbone: Backbone) -> Relocalizer:
+        """This pipeline with another network answering for the same one (e.g. its ONNX
+        export): the same fitted map, crop search, options and metadata."""
+        swapped = Relocalizer(
+            backbone,
+            self.index,
+            self.crop,
+            self.device,
+            self.batch_size,
+            self.retrieval_k,
+            self.scoring,
+            crop_samples=self.crop_samples,
+            sample_seed=self.sample_seed,
+            rerank=self.rerank,
+            queries_at_once=self.queries_at_once,
+        )
+        swapped.map_poses = self.map_poses
+        swapped.metadata = self.metadata
+        return swapped
+
     @property
     def crop_scale(self) -> float:
         """The backbone's training crop_scale: the network sees the central

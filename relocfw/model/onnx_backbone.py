@@ -120,23 +120,7 @@ def onnx_relocalizer(
             f"backend=onnx runs the dropout-free network, but the model samples "
             f"backbone.mc_samples={samples} Monte Carlo dropout masks (use backend=torch)"
         )
-    backbone = OnnxBackbone(path, relocalizer.backbone, threads)
-    swapped = Relocalizer(
-        backbone,
-        relocalizer.index,
-        relocalizer.crop,
-        relocalizer.device,
-        relocalizer.batch_size,
-        relocalizer.retrieval_k,
-        relocalizer.scoring,
-        crop_samples=relocalizer.crop_samples,
-        sample_seed=relocalizer.sample_seed,
-        rerank=relocalizer.rerank,
-        queries_at_once=relocalizer.queries_at_once,
-    )
-    swapped.map_poses = relocalizer.map_poses
-    swapped.metadata = relocalizer.metadata
-    return swapped
+    return relocalizer.with_backbone(OnnxBackbone(path, relocalizer.backbone, threads))
 
 
 def check_onnx_scoring(scoring: str) -> None:
