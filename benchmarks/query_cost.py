@@ -4,7 +4,9 @@
 search with plain scoring (every candidate through the whole network) and shared
 scoring (one trunk pass over the strip, see relocfw.core.window_pooling). Timing does not
 depend on the weights, so the network is freshly initialised; the map is fitted on
-descriptors of rendered training views. Prints a table, writes JSON.
+descriptors of rendered training views. The plain sweep runs twice, at the default
+`batch_size` (most windows per pass) and at 64, the default before it was measured
+here. Prints a table, writes JSON.
 
     .venv/bin/python benchmarks/query_cost.py --queries 20
 """
@@ -12,6 +14,7 @@ descriptors of rendered training views. Prints a table, writes JSON.
 from __future__ import annotations
 
 import argparse
+import inspect
 import platform
 from pathlib import Path
 
@@ -38,17 +41,19 @@ def main() -> None:
     backbone = PoseNet(input_size=args.input_size).eval()
     queries, _ = render_views(args.queries, -1)
     map_images, _ = render_views(args.map_images, 0)
+    default = inspect.signature(Relocalizer).parameters["batch_size"].default
     methods = (
-        ("centre", CentreCrop(), "plain"),
-        ("ga", GeneticCropSearch(), "plain"),
-        ("sweep", SweepCrop(), "plain"),
-        ("ga", GeneticCropSearch(), "shared"),
-        ("sweep", SweepCrop(), "shared"),
+        ("centre", CentreCrop(), "plain", default),
+        ("ga", GeneticCropSearch(), "plain", default),
+        ("sweep", SweepCrop(), "plain", default),
+        ("sweep", SweepCrop(), "plain", 64),
+        ("ga", GeneticCropSearch(), "shared", default),
+        ("sweep", SweepCrop(), "shared", default),
     )
     relocalizers = []
-    for _, crop, scoring in methods:
+    for _, crop, scoring, batch_size in methods:
         index = KMeansIndex(k=min(40, args.map_images))
-        relocalizer = Relocalizer(backbone, index, crop, scoring=scoring)
+        relocalizer = Relocalizer(backbone, index, crop, batch_size=batch_size, scoring=scoring)
         relocalizer.fit(map_images)
         relocalizer.localize(queries[0])  # warm-up: allocator, thread pool
         relocalizers.append(relocalizer)
@@ -62,22 +67,25 @@ def main() -> None:
         {
             "search": name,
             "scoring": scoring,
+            "batch_size": batch_size,
             "ms_per_query": 1000 * float(np.median([a.seconds for a in found])),
             "mean_ms_per_query": 1000 * float(np.mean([a.seconds for a in found])),
             "crops_scored": float(np.mean([a.evaluations for a in found])),
             "network_passes": float(np.mean([a.network_passes for a in found])),
         }
-        for (name, _, scoring), found in zip(methods, answers, strict=True)
+        for (name, _, scoring, batch_size), found in zip(methods, answers, strict=True)
     ]
     centre = rows[0]["ms_per_query"]
     for row in rows:
         row["times_centre"] = row["ms_per_query"] / centre
     print(
-        f"{'search':<8} {'scoring':<8} {'median ms':>9} {'crops':>6} {'passes':>7} {'x centre':>9}"
+        f"{'search':<8} {'scoring':<8} {'batch':>5} {'median ms':>9} {'crops':>6} "
+        f"{'passes':>7} {'x centre':>9}"
     )
     for row in rows:
         print(
-            f"{row['search']:<8} {row['scoring']:<8} {row['ms_per_query']:>9.1f} "
+            f"{row['search']:<8} {row['scoring']:<8} {row['batch_size']:>5} "
+            f"{row['ms_per_query']:>9.1f} "
             f"{row['crops_scored']:>6.1f} {row['network_passes']:>7.2f} {row['times_centre']:>9.2f}"
         )
     report = {

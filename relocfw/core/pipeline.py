@@ -173,7 +173,7 @@ class Relocalizer:
         index: SimilarityIndex,
         crop: CropSearch,
         device: str | torch.device = "cpu",
-        batch_size: int = 64,
+        batch_size: int = 16,
         retrieval_k: int = 0,
         scoring: str = "plain",
         crop_samples: int = 0,

@@ -75,7 +75,7 @@ def save_model(
 
 
 def load_model(
-    path: Path, device: str | torch.device = "cpu", batch_size: int = 64, scoring: str = "plain"
+    path: Path, device: str | torch.device = "cpu", batch_size: int = 16, scoring: str = "plain"
 ) -> Relocalizer:
     """The Relocalizer saved in `path`, ready to localize."""
     path = Path(path)
