@@ -72,16 +72,16 @@ class Lockstep:
                     self._condition.wait()
                 if self._solo:
                     member, work = self._solo.popleft()
-                    members, run = [member], lambda work=work: [work()]
+                    members, requests = [member], None
                 elif self._merge_ready():
                     members, requests = zip(*self._pending.items(), strict=True)
                     self._pending = {}
                     self.calls += 1
-                    run = lambda requests=requests: list(self._run_together(list(requests)))  # noqa: E731
                 else:
                     return  # every member has left and nothing is queued
             try:
-                answers = run()
+                solo = requests is None
+                answers = [work()] if solo else list(self._run_together(list(requests)))
             except BaseException as error:  # noqa: BLE001 - handed to every asker, re-raised there
                 answers = [_Failed(error)] * len(members)
             with self._condition:
