@@ -14,14 +14,18 @@ same up to float rounding). Prints a table, writes JSON.
 from __future__ import annotations
 
 import argparse
-import os
 import platform
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import device_name, model_frames, write_json  # benchmarks/, the script's own folder
+from common import (  # benchmarks/, the script's own folder
+    DEFAULT_CACHE,
+    device_name,
+    model_frames,
+    write_json,
+)
 from shared_scoring import pose_difference
 
 from relocfw import load_model
@@ -48,9 +52,7 @@ def timed(run) -> tuple[list, float]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, required=True)
-    parser.add_argument(
-        "--cache", type=Path, default=Path(os.environ.get("RELOCFW_CACHE", "~/.cache/relocfw"))
-    )
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ...")
     parser.add_argument("--group", type=int, default=16, help="queries localized together")
     parser.add_argument("--batch-size", type=int, default=256, help="most windows per pass")

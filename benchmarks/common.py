@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,9 @@ from relocfw.data.frames import Frame
 from relocfw.data.room import Room, RoomRenderer
 from relocfw.data.synthetic import SyntheticSceneSpec, lap_poses, scene_laps
 from relocfw.model.checkpoints import write_text_atomic
+
+# Where relocfw caches scenes and checkpoints, as the CLI's cache_dir default reads it.
+DEFAULT_CACHE = Path(os.environ.get("RELOCFW_CACHE", "~/.cache/relocfw"))
 
 
 def render_views(

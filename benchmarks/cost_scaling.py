@@ -20,7 +20,6 @@ Prints tables, writes JSON.
 from __future__ import annotations
 
 import argparse
-import os
 import platform
 import time
 from pathlib import Path
@@ -28,7 +27,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from common import model_frames, render_views, write_json  # benchmarks/, the script's own folder
+from common import (  # benchmarks/, the script's own folder
+    DEFAULT_CACHE,
+    model_frames,
+    render_views,
+    write_json,
+)
 
 from relocfw import Relocalizer, load_model
 from relocfw.core.imaging import Strip
@@ -182,9 +186,7 @@ def main() -> None:
     parser.add_argument("--map-images", type=int, default=60)
     parser.add_argument("--input-size", type=int, default=224)
     parser.add_argument("--model", type=Path, help="model file for part 3 (real descriptors)")
-    parser.add_argument(
-        "--cache", type=Path, default=Path(os.environ.get("RELOCFW_CACHE", "~/.cache/relocfw"))
-    )
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     parser.add_argument("--map-sizes", type=int, nargs="+", default=[100, 1000, 5000])
     parser.add_argument("--only", nargs="+", choices=["sizes", "ga", "map"], default=None)
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/cost_scaling.json"))

@@ -28,13 +28,17 @@ centre crop, or says that none does. Prints a table, writes JSON.
 from __future__ import annotations
 
 import argparse
-import os
 import platform
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import device_name, model_frames, write_json  # benchmarks/, the script's own folder
+from common import (  # benchmarks/, the script's own folder
+    DEFAULT_CACHE,
+    device_name,
+    model_frames,
+    write_json,
+)
 from shared_scoring import pose_difference
 
 from relocfw import Relocalizer, load_model
@@ -88,9 +92,7 @@ def compare(found: list, plain: list, images: list, relocalizer: Relocalizer) ->
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, required=True)
-    parser.add_argument(
-        "--cache", type=Path, default=Path(os.environ.get("RELOCFW_CACHE", "~/.cache/relocfw"))
-    )
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     parser.add_argument("--queries", type=int, default=0, help="first N test images; 0: all")
     parser.add_argument("--rerank", type=int, nargs="+", default=[1, 2, 4, 8])
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ...")

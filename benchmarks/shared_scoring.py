@@ -21,12 +21,11 @@ Prints a table, writes JSON.
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 import numpy as np
 import torch
-from common import model_frames, write_json  # benchmarks/, the script's own folder
+from common import DEFAULT_CACHE, model_frames, write_json  # benchmarks/, the script's own folder
 
 from relocfw import Relocalizer, load_model
 from relocfw.core.geometry import orientation_error_deg, position_error
@@ -87,9 +86,7 @@ def bootstrap_median_difference(
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--model", type=Path, required=True)
-    parser.add_argument(
-        "--cache", type=Path, default=Path(os.environ.get("RELOCFW_CACHE", "~/.cache/relocfw"))
-    )
+    parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     parser.add_argument("--seeds", type=int, default=5, help="GA seeds per scoring")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/shared_scoring.json"))
     args = parser.parse_args()

@@ -34,7 +34,7 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from common import write_json  # benchmarks/, the script's own folder
+from common import DEFAULT_CACHE, write_json  # benchmarks/, the script's own folder
 from scipy.stats import wilcoxon
 
 from relocfw.data.synthetic import SyntheticSceneSpec, ensure_synthetic_scene
@@ -126,7 +126,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args()
     out = args.out or Path(f"benchmarks/results/training_crops_{args.split}.json")
-    cache_dir = Path(os.environ.get("RELOCFW_CACHE", "~/.cache/relocfw")).expanduser()
+    cache_dir = DEFAULT_CACHE.expanduser()
     if "redkitchen" in args.datasets and not REDKITCHEN.is_dir():
         sys.exit(f"error: Red Kitchen frames not found at {REDKITCHEN}")
     runs = []
