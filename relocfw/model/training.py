@@ -34,6 +34,8 @@ from relocfw.model.loss import FixedWeighting, LearnedWeighting, posenet_loss
 # PoseNet's training crops: 224 of a 256-pixel short side. On the validation splits of
 # benchmarks/training_crops.py it beat crops of the whole short side (README).
 POSENET_CROP_SCALE = 256 / 224
+# What one unit of position error is in the loss (TrainSettings.position_frame).
+POSITION_FRAMES = ("normalised", "world")
 
 
 @dataclass(frozen=True)
@@ -50,7 +52,14 @@ class TrainSettings:
         weight_decay: L2 penalty.
         loss: "fixed" (paper: position + beta x orientation) or "learned" (Kendall &
             Cipolla 2017 homoscedastic weighting).
-        beta: weight of the quaternion error against position error in metres (fixed).
+        beta: weight of the quaternion error against the position error (fixed), the
+            latter in units of `position_frame`.
+        position_frame: what one unit of position error is in the loss. "normalised":
+            the spread of the training positions, the frame the network regresses in,
+            so beta means the same at any scene scale (metres, or a COLMAP model's
+            arbitrary unit); every preset but the paper's uses it. "world" (the
+            paper's, so the default with its beta 250): one unit of the poses,
+            PoseNet's beta in metres (120-750 indoors); only right for metric scenes.
         learned_init: initial (s_x, s_q) of the learned weighting.
         auxiliary_weights: loss weights of the two auxiliary heads.
         random_crops: train on a random square crop of each image (paper), not the centre.
@@ -74,6 +83,7 @@ class TrainSettings:
     weight_decay: float = 0.0
     loss: str = "fixed"
     beta: float = 250.0
+    position_frame: str = "world"
     learned_init: tuple[float, float] = (0.0, -3.0)
     auxiliary_weights: tuple[float, float] = (0.3, 0.3)
     random_crops: bool = True
@@ -94,6 +104,11 @@ class TrainSettings:
             raise ConfigError(f"train.loss must be 'fixed' or 'learned', got {self.loss!r}")
         if len(self.learned_init) != 2:
             raise ConfigError("train.learned_init must hold two numbers (s_x, s_q)")
+        if self.position_frame not in POSITION_FRAMES:
+            raise ConfigError(
+                f"train.position_frame must be one of {', '.join(POSITION_FRAMES)}, "
+                f"got {self.position_frame!r}"
+            )
         if self.optimizer not in ("sgd", "adam"):
             raise ConfigError(f"train.optimizer must be 'sgd' or 'adam', got {self.optimizer!r}")
         if self.lr_schedule not in ("constant", "cosine"):
@@ -249,6 +264,9 @@ def train_backbone(
         positions.mean(axis=0), float(max(positions.std(axis=0).mean(), 1e-3))
     )
     backbone.set_crop_scale(data.crop_scale)
+    position_unit = (
+        float(backbone.position_scale) if settings.position_frame == "normalised" else 1.0
+    )
     # Channels-last trains GoogLeNet about 1.6x faster on CPU (benchmarks/).
     memory_format = torch.channels_last if backbone.channels_last else torch.contiguous_format
     backbone.to(device=device, memory_format=memory_format)
@@ -327,6 +345,7 @@ def train_backbone(
             weighting,
             settings.auxiliary_weights,
             parts,
+            position_unit,
         )
         batch_loss = loss if world is None else world.mean(loss)
         if not torch.isfinite(batch_loss):
