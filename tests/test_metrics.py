@@ -51,3 +51,13 @@ def test_a_failed_query_counts_as_infinitely_wrong_not_dropped():
 def test_unequal_inputs_are_refused():
     with pytest.raises(ValueError, match="equal"):
         accuracy_metrics(np.zeros(3), np.zeros(2))
+
+
+@pytest.mark.parametrize(("metres", "degrees"), RECALL_BANDS)
+def test_a_query_exactly_on_a_band_limit_is_outside_it(metres, degrees):
+    # Strict on both limits (error < limit), as hloc's evaluation counts: q0 sits on
+    # the degree limit, q1 on the metre limit, q2 and q3 just inside each.
+    positions = np.array([metres / 2, metres, np.nextafter(metres, 0), metres / 2])
+    orientations = np.array([degrees, degrees / 2, degrees / 2, np.nextafter(degrees, 0)])
+    metrics = accuracy_metrics(positions, orientations)
+    assert metrics[band_key(metres, degrees)] == pytest.approx(2 / 4)

@@ -134,3 +134,19 @@ def test_a_method_that_fails_queries_is_written_strictly_and_counted(tmp_path):
     assert "| room | Lost |" in (tmp_path / "comparison.md").read_text()
     assert "room,Lost," in (tmp_path / "comparison.csv").read_text()
     assert (tmp_path / "seed_0" / "room_position_error_histogram.png").stat().st_size > 0
+
+
+def test_failures_on_opposite_seeds_print_an_undefined_verdict():
+    good = [0.1, 0.2, 0.3, 0.4, 0.5]
+    lost = [float("nan")] * 3 + good[3:]  # three of five fail: the median is inf
+    results = {
+        0: {"room": {"Ref": answered("Ref", good), "Other": answered("Other", lost)}},
+        1: {"room": {"Ref": answered("Ref", lost), "Other": answered("Other", good)}},
+    }
+    table = seed_comparison(results, {}, "Ref")
+    test = table["room"]["Other"]["vs_reference"]["position_m"]
+    assert test["verdict"].startswith("undefined")
+    markdown = seed_markdown(table, "Ref", [0, 1])
+    row = next(line for line in markdown.splitlines() if line.startswith("| room | Other |"))
+    assert "undefined [-inf, +inf]" in row and "no significant difference" not in row
+    assert "per-seed difference" in markdown  # the footnote says what Wilcoxon pairs

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.stats import wilcoxon
 
 from relocfw.report.statistics import difference, paired_test, spread, verdict
 
@@ -75,3 +76,86 @@ def test_spread_over_seeds():
 def test_mismatched_pairs_are_refused():
     with pytest.raises(ValueError, match="shape"):
         paired_test(np.zeros((2, 3)), np.zeros((2, 4)))
+
+
+def test_failures_on_opposite_seeds_are_undefined_never_no_difference():
+    # The same 20 errors for both, but 12 queries fail: the method's on seed 0, the
+    # reference's on seed 1. Each side's median is inf on a different seed, so the
+    # mean over seeds of the difference of medians is +inf and -inf at once.
+    base = np.random.default_rng(0).uniform(0.1, 1.0, size=20)
+    errors, reference = np.tile(base, (2, 1)), np.tile(base, (2, 1))
+    errors[0, :12] = np.inf
+    reference[1, :12] = np.inf
+    test = paired_test(errors, reference)
+    assert np.isnan(test["median_difference"])
+    assert test["verdict"].startswith("undefined")
+    # The interval is still defined: undefined resamples could lie anywhere.
+    assert test["bootstrap_95"] == [-np.inf, np.inf]
+    assert test["undefined_resamples"] > 0
+    # Each failed query failed once on each side: ties, as the unfailed ones are.
+    assert test["untied_pairs"] == 0 and test["wilcoxon_p"] == 1.0
+    reference[1, :12] = np.nan  # a NaN error is a failure too
+    again = paired_test(errors, reference)
+    assert again["verdict"] == test["verdict"] and again["bootstrap_95"] == test["bootstrap_95"]
+
+
+def test_an_undefined_p_or_bound_is_never_read_as_no_difference():
+    nan = float("nan")
+    assert verdict(nan, -0.1, 0.1, direction=0).startswith("undefined")
+    assert verdict(0.5, nan, nan, direction=0).startswith("undefined")
+    assert verdict(0.001, -0.2, nan, direction=-1).startswith("undefined")
+
+
+def test_undefined_resamples_widen_the_interval_never_shrink_it():
+    from relocfw.report.statistics import percentile_interval
+
+    defined = np.linspace(-1.0, 1.0, 1000)
+    few = defined.copy()
+    few[::100] = np.nan  # 1%, inside the 2.5% tails: the bounds stay finite
+    low, high = percentile_interval(few)
+    assert np.isfinite([low, high]).all()
+    assert low <= percentile_interval(defined)[0] and high >= percentile_interval(defined)[1]
+    many = defined.copy()
+    many[::20] = np.nan  # 5%: more than either tail holds
+    assert percentile_interval(many) == (-np.inf, np.inf)
+
+
+def test_the_signed_rank_test_pairs_each_query_within_a_seed():
+    # Per query, the method's three seeds hold the reference's errors in another order
+    # (x < y < z becomes y, z, x): the median over seeds of each side is the same y,
+    # so differencing the medians sees nothing, while on two seeds of three the
+    # method's error is higher than the reference's on the same seed.
+    rng = np.random.default_rng(0)
+    x, y, z = np.sort(rng.uniform(0.1, 1.0, size=(3, 30)), axis=0)
+    reference = np.stack([x, y, z])
+    errors = np.stack([y, z, x])
+    median_of_each = np.median(errors, axis=0) - np.median(reference, axis=0)
+    assert np.all(median_of_each == 0)  # the old input: nothing to test
+    per_seed_median = np.median(errors - reference, axis=0)  # min(y - x, z - y) > 0
+    test = paired_test(errors, reference)
+    assert test["untied_pairs"] == 30 and test["method_better_share"] == 0.0
+    assert test["wilcoxon_p"] == pytest.approx(wilcoxon(per_seed_median).pvalue)
+    assert test["wilcoxon_p"] < 1e-6
+
+
+def test_two_seeds_with_opposite_failures_on_one_query_tie_on_it():
+    from relocfw.report.statistics import per_query_differences
+
+    errors = np.array([[np.inf, 0.2, 0.3], [0.1, 0.2, 0.5]])
+    reference = np.array([[0.1, 0.1, 0.3], [np.inf, 0.2, 0.3]])
+    # q0: +inf on seed 0, -inf on seed 1, midpoint undefined: a tie. q1: (0.1 + 0)/2.
+    differences = per_query_differences(errors, reference)
+    assert differences == pytest.approx([0.0, 0.05, 0.1])
+
+
+def test_a_uniform_five_percent_improvement_is_found_by_the_paired_bootstrap():
+    # Errors spread over three orders of magnitude: resampled medians move far more
+    # than 5% from one resample to the next, so only resampling the same queries for
+    # both methods (the pairing) sees the improvement.
+    rng = np.random.default_rng(0)
+    reference = 10.0 ** rng.uniform(-2.0, 1.0, size=(3, 200))
+    better = 0.95 * reference
+    test = paired_test(better, reference, seed=3)
+    low, high = test["bootstrap_95"]
+    assert low <= test["median_difference"] <= high < 0
+    assert test["verdict"] == "significantly lower"

@@ -95,3 +95,61 @@ def test_a_sampled_methods_summary_carries_its_uncertainty_columns():
     assert "position_ause_m" not in plain
     header = summary_csv([plain, sampled]).splitlines()[0]
     assert header.endswith("median_orientation_deg_rejecting_30%")
+
+
+TWENTY = np.linspace(0.05, 1.0, 20)
+
+
+def test_one_failed_query_among_twenty_leaves_ause_finite_and_counted():
+    errors = TWENTY.copy()
+    errors[7] = np.inf
+    spread = TWENTY.copy()
+    spread[7] = 0.0  # the spread misses the failure: it keeps it to the end
+    curves = ause(errors, spread)
+    answered = np.arange(20) != 7
+    assert curves["ause"] == pytest.approx(ause(TWENTY[answered], spread[answered])["ause"])
+    assert curves["failed_queries"] == 1 and len(curves["oracle"]) == 19
+    errors[7] = np.nan  # a NaN error is a failure too
+    assert ause(errors, spread)["ause"] == curves["ause"]
+    # Nothing answered: no area to measure, said as NaN, not as 0 or inf.
+    nothing = ause(np.full(4, np.inf), np.arange(4.0))
+    assert np.isnan(nothing["ause"]) and nothing["failed_queries"] == 4
+
+
+def test_the_sparsification_curve_counts_a_failure_as_infinite_never_nan():
+    errors = ERRORS.copy()
+    errors[1] = np.nan  # the 0.1 query failed
+    order = np.argsort(-ERRORS)  # ranked as if it had been the best: removed last
+    curve = sparsification_curve(errors, order)
+    assert not np.isnan(curve).any()
+    # Inf once the failure fills half of what is kept: the last two entries.
+    assert np.isinf(curve[-2:]).all() and np.isfinite(curve[:-2]).all()
+    assert curve[0] == pytest.approx(np.median(np.where(np.isnan(errors), np.inf, errors)))
+
+
+def test_a_query_without_a_spread_is_the_most_uncertain_everywhere():
+    spread = ERRORS.copy()
+    spread[9] = np.nan  # the largest error (1.0) has no spread
+    medians = rejection_medians(ERRORS, spread)
+    assert medians["10%"] == pytest.approx(np.median(np.delete(ERRORS, 9)))  # 1.0 rejected
+    assert ause(ERRORS, spread)["ause"] == 0.0  # ranked exactly as its error is
+    quality = uncertainty_quality(ERRORS, ERRORS, spread, spread)
+    assert quality["position"]["spearman_spread_error"] == pytest.approx(1.0)
+    assert quality["position"]["ause"] == 0.0
+
+
+def test_a_failed_query_is_infinitely_wrong_in_spearman_and_the_rejection_medians():
+    errors = ERRORS.copy()
+    errors[0] = np.inf
+    spread = ERRORS.copy()
+    spread[0] = 10.0  # the spread flags the failure as the most uncertain
+    quality = uncertainty_quality(errors, errors, spread, spread)["position"]
+    assert quality["spearman_spread_error"] == pytest.approx(1.0)  # the failure ranks last
+    assert quality["failed_queries"] == 1
+    assert np.isfinite(quality["ause"])
+    # 10% rejects the failure; kept, as when the spread is low, it counts as inf.
+    assert quality["median_after_rejecting"]["10%"] == pytest.approx(np.median(ERRORS[1:]))
+    spread[0] = 0.0
+    kept = rejection_medians(errors, spread)["10%"]
+    assert kept == pytest.approx(np.median(np.delete(errors, 9)))  # 1.0 rejected, inf kept
+    assert kept > np.median(np.delete(ERRORS, [0, 9]))

@@ -87,10 +87,14 @@ def seed_comparison(
 
 
 def paired_cell(test: Mapping[str, object], unit_format: str) -> str:
+    """One paired test as `difference [low, high], p=...: verdict`."""
     low, high = test["bootstrap_95"]
+    difference = test["median_difference"]
+    # NaN: failures on opposite seeds leave no difference to print (see paired_test).
+    shown = "undefined" if np.isnan(difference) else f"{difference:+{unit_format}}"
     return (
-        f"{test['median_difference']:+{unit_format}} [{low:+{unit_format}}, "
-        f"{high:+{unit_format}}], p={test['wilcoxon_p']:.2g}: {test['verdict']}"
+        f"{shown} [{low:+{unit_format}}, {high:+{unit_format}}], "
+        f"p={test['wilcoxon_p']:.2g}: {test['verdict']}"
     )
 
 
@@ -136,8 +140,11 @@ def seed_markdown(
     note = (
         f"\nTraining seeds {', '.join(str(s) for s in seeds)}: medians are mean +- std over "
         "seeds; bands are the mean share of queries within both limits. Paired tests use "
-        "the same queries: the bootstrap resamples queries (2000 times), Wilcoxon tests "
-        "each query's median over seeds; p values are not corrected for the number of "
-        "methods. A failed query counts as infinitely wrong.\n"
+        "the same queries: the bootstrap resamples queries (2000 times, the same queries "
+        "for both methods on every seed), Wilcoxon tests each query's median over seeds of "
+        "its per-seed difference (method minus reference, same seed); p values are not "
+        "corrected for the number of methods. A failed query counts as infinitely wrong; "
+        "where a method's median is infinite on one seed and the reference's on another, "
+        "the difference is undefined and so is the verdict.\n"
     )
     return as_markdown(header, rows) + note

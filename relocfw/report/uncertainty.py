@@ -10,12 +10,26 @@ error. Measured here the way the literature does:
   their true error (the oracle); AUSE, the area between the two (0: the spread ranks
   queries exactly as their errors do);
 - the median error left after rejecting the 10 / 20 / 30 % most uncertain queries.
+
+Failed queries and missing spreads, one rule each, the same in every measure:
+
+- A query without a spread (NaN) is the most uncertain: it is removed or rejected
+  first and ranks with the largest spreads. Nothing vouches for it, and dropping it
+  would hide it.
+- A failed query (a NaN or infinite error) is infinitely wrong, as in the accuracy
+  metrics: it ranks last in Spearman and counts in the sparsification curve and the
+  rejection medians (which are infinite while failures fill half of what is kept).
+  AUSE is the exception: it is the area over the queries with a finite error, and
+  `failed_queries` says how many were left out. An infinite error would otherwise
+  make the area infinite whenever the spread does not put the failure first, which
+  says nothing about how the spread ranks the other queries.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from relocfw.report.metrics import failed_as_infinite
 from relocfw.report.statistics import spearman
 
 REJECTION_SHARES = (0.1, 0.2, 0.3)
@@ -25,47 +39,62 @@ def sparsification_curve(errors: np.ndarray, order: np.ndarray) -> np.ndarray:
     """[N] median error of the queries kept after removing the first i of `order`.
 
     Entry i removes the i queries that come first in `order` (most uncertain first),
-    so entry 0 is the median over all queries and entry N-1 keeps one query.
+    so entry 0 is the median over all queries and entry N-1 keeps one query. A failed
+    query (NaN or inf error) is +inf, so an entry is inf while failures fill the upper
+    half of the queries kept; never NaN.
     """
-    errors = np.asarray(errors, dtype=np.float64)
+    errors = failed_as_infinite(errors)
     kept_last_first = errors[np.asarray(order)][::-1]
     # The median of each suffix of `order`, computed once per length.
     return np.array([np.median(kept_last_first[: len(errors) - i]) for i in range(len(errors))])
 
 
 def most_uncertain_first(uncertainty: np.ndarray) -> np.ndarray:
-    """Query indices from the largest spread to the smallest (stable among ties)."""
-    return np.argsort(-np.asarray(uncertainty, dtype=np.float64), kind="stable")
+    """Query indices from the largest spread to the smallest (stable among ties).
+
+    A NaN spread (none measured) comes first, tied with an infinite one.
+    """
+    uncertainty = np.asarray(uncertainty, dtype=np.float64)
+    uncertainty = np.where(np.isnan(uncertainty), np.inf, uncertainty)
+    return np.argsort(-uncertainty, kind="stable")
 
 
 def ause(errors: np.ndarray, uncertainty: np.ndarray) -> dict[str, object]:
-    """Sparsification curves and the area between them.
+    """Sparsification curves and the area between them, over the answered queries.
 
     Returns:
-        `fractions` removed (i / N), `by_uncertainty` and `oracle` curves, and `ause`,
-        the mean over fractions of (by_uncertainty - oracle): the area between the
-        curves on [0, 1), in the errors' unit. 0 when the spread orders the queries as
-        their errors do; largest when it orders them in reverse.
+        `fractions` removed (i / n, n the queries with a finite error),
+        `by_uncertainty` and `oracle` curves over those n queries, and `ause`, the
+        mean over fractions of (by_uncertainty - oracle): the area between the curves
+        on [0, 1), in the errors' unit. 0 when the spread orders the queries as their
+        errors do; largest when it orders them in reverse; NaN when no query has a
+        finite error. `failed_queries`: the queries left out (NaN or inf error).
     """
-    errors = np.asarray(errors, dtype=np.float64)
+    errors = failed_as_infinite(errors)
+    answered = np.isfinite(errors)
+    errors = errors[answered]
+    uncertainty = np.asarray(uncertainty, dtype=np.float64)[answered]
     by_uncertainty = sparsification_curve(errors, most_uncertain_first(uncertainty))
     oracle = sparsification_curve(errors, most_uncertain_first(errors))
     gap = by_uncertainty - oracle
-    # inf - inf where both keep a failed query in the median: no gap there.
-    gap = np.where(np.isnan(gap), 0.0, gap)
     return {
-        "fractions": (np.arange(len(errors)) / len(errors)).tolist(),
+        "fractions": (np.arange(len(errors)) / max(len(errors), 1)).tolist(),
         "by_uncertainty": by_uncertainty.tolist(),
         "oracle": oracle.tolist(),
-        "ause": float(np.mean(gap)),
+        "ause": float(np.mean(gap)) if len(gap) else float("nan"),
+        "failed_queries": int(np.count_nonzero(~answered)),
     }
 
 
 def rejection_medians(
     errors: np.ndarray, uncertainty: np.ndarray, shares: tuple[float, ...] = REJECTION_SHARES
 ) -> dict[str, float]:
-    """Median error after rejecting each share of the most uncertain queries."""
-    errors = np.asarray(errors, dtype=np.float64)
+    """Median error after rejecting each share of the most uncertain queries.
+
+    Failed queries that are kept count as +inf (the median is inf while they fill
+    half of what is kept); a NaN spread is rejected first.
+    """
+    errors = failed_as_infinite(errors)
     order = most_uncertain_first(uncertainty)
     out = {}
     for share in shares:
@@ -81,7 +110,11 @@ def uncertainty_quality(
     position_spread: np.ndarray,
     orientation_spread: np.ndarray,
 ) -> dict[str, object] | None:
-    """Every measure above for position and orientation; None when nothing was sampled."""
+    """Every measure above for position and orientation; None when nothing was sampled.
+
+    Each kind also carries `failed_queries`, the failures AUSE leaves out (see the
+    module's rules).
+    """
     position_spread = np.asarray(position_spread, dtype=np.float64)
     orientation_spread = np.asarray(orientation_spread, dtype=np.float64)
     if np.all(np.isnan(position_spread)):
@@ -91,12 +124,14 @@ def uncertainty_quality(
         ("position", position_errors, position_spread),
         ("orientation", orientation_errors, orientation_spread),
     ):
-        # A query without a spread is treated as the most uncertain (it is not dropped).
-        spread = np.where(np.isnan(spread), np.inf, spread)
+        errors = failed_as_infinite(errors)
         curves = ause(errors, spread)
+        # Spearman ranks a missing spread with the largest, as the orderings above do.
+        ranked_spread = np.where(np.isnan(spread), np.inf, spread)
         quality[kind] = {
-            "spearman_spread_error": spearman(spread, errors),
+            "spearman_spread_error": spearman(ranked_spread, errors),
             "ause": curves["ause"],
+            "failed_queries": curves["failed_queries"],
             "median_after_rejecting": rejection_medians(errors, spread),
             "sparsification": curves,
         }
