@@ -23,6 +23,7 @@ from relocfw.data.colmap import (
     pose_to_colmap,
 )
 from relocfw.data.colmap_format import (
+    CAMERA_MODELS,
     ColmapCamera,
     ColmapImage,
     read_cameras_binary,
@@ -117,6 +118,7 @@ def test_hand_written_images_txt_gives_the_known_camera(tmp_path):
     # (trace 0: w = 1/2, x = (R21 - R12)/2 = 1/2, ...) is (0.5, 0.5, -0.5, 0.5).
     # The second camera sits at the origin-facing identity rotation, 4 units along +Z.
     (tmp_path / "sparse" / "0").mkdir(parents=True)
+    (tmp_path / "sparse" / "0" / "cameras.txt").write_text("1 SIMPLE_PINHOLE 48 36 40 24 18\n")
     (tmp_path / "sparse" / "0" / "images.txt").write_text(
         "# Image list with two lines of data per image:\n"
         "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
@@ -193,11 +195,11 @@ def test_binary_layout_matches_the_documentation(tmp_path):
     ]
     cameras = struct.pack("<Q", 2)
     cameras += struct.pack("<IiQQ", 1, 0, 640, 480) + struct.pack("<3d", 500, 320, 240)
-    cameras += struct.pack("<IiQQ", 2, 4, 64, 48) + struct.pack("<8d", *range(8))
+    cameras += struct.pack("<IiQQ", 2, 4, 64, 48) + struct.pack("<8d", *range(1, 9))
     (tmp_path / "cameras.bin").write_bytes(cameras)
     assert read_cameras_binary(tmp_path / "cameras.bin") == [
         ColmapCamera(1, "SIMPLE_PINHOLE", 640, 480, (500.0, 320.0, 240.0)),
-        ColmapCamera(2, "OPENCV", 64, 48, tuple(float(v) for v in range(8))),
+        ColmapCamera(2, "OPENCV", 64, 48, tuple(float(v) for v in range(1, 9))),
     ]
 
 
@@ -457,6 +459,159 @@ def test_skip_leaves_out_bad_lines_and_lists_them(text_project):
     dataset = ColmapDataset(str(root), test=["c.png"], on_error="skip")
     assert names_of(dataset, "train") == ["b.png"]
     assert dataset.on_error.skipped[0].startswith(f"{images_txt}:{line}: ")
+
+
+# -------------------------------------------------------------------------- cameras
+
+CAMERAS_HEADER = "# Camera list with one line of data per camera:\n# Number of cameras: 2\n"
+
+
+def write_cameras_txt(root: Path, *lines: str) -> Path:
+    """cameras.txt of the text project: a two-line header, then `lines` from line 3 on."""
+    path = root / "sparse" / "0" / "cameras.txt"
+    path.write_text(CAMERAS_HEADER + "".join(f"{line}\n" for line in lines))
+    return path
+
+
+def test_the_binary_model_ids_are_colmaps():
+    # COLMAP's CameraModelId order (src/colmap/sensor/models.h): cameras.bin stores it.
+    assert [CAMERA_MODELS[i] for i in range(11)] == [
+        ("SIMPLE_PINHOLE", 3),
+        ("PINHOLE", 4),
+        ("SIMPLE_RADIAL", 4),
+        ("RADIAL", 5),
+        ("OPENCV", 8),
+        ("OPENCV_FISHEYE", 8),
+        ("FULL_OPENCV", 12),
+        ("FOV", 5),
+        ("SIMPLE_RADIAL_FISHEYE", 4),
+        ("RADIAL_FISHEYE", 5),
+        ("THIN_PRISM_FISHEYE", 12),
+    ]
+
+
+def test_cameras_txt_is_read_and_kept_beside_the_frames(text_project):
+    root, _ = text_project
+    write_cameras_txt(
+        root,
+        "1 PINHOLE 48 36 40.5 41.25 24 18",
+        "",
+        "7 OPENCV 640 480 500 501 320 240 -0.1 0.01 0.001 -0.002",
+    )
+    dataset = ColmapDataset(str(root), test=["c.png"])
+    assert dataset.cameras == {
+        1: ColmapCamera(1, "PINHOLE", 48, 36, (40.5, 41.25, 24.0, 18.0)),
+        7: ColmapCamera(7, "OPENCV", 640, 480, (500, 501, 320, 240, -0.1, 0.01, 0.001, -0.002)),
+    }
+    (frame,) = dataset.frames("test")
+    assert dataset.camera(frame.name) is dataset.cameras[1]  # every image uses camera 1
+    assert dataset.cameras[1].source == f"{root / 'sparse' / '0' / 'cameras.txt'}:3"
+    assert type(frame).__name__ == "Frame" and frame.name == "c.png"  # frames as before
+    with pytest.raises(DataError, match="'x.png' is not an image registered in"):
+        dataset.camera("x.png")
+
+
+def test_a_binary_models_cameras_are_kept(tmp_path):
+    project(tmp_path, named_poses(["a.png", "b.png"]), binary=True)
+    dataset = ColmapDataset(str(tmp_path), test=["b.png"])
+    assert dataset.cameras == {1: CAMERA} and dataset.camera("a.png") == CAMERA
+    assert dataset.cameras_file == tmp_path / "sparse" / "0" / "cameras.bin"
+
+
+@pytest.mark.parametrize(
+    ("line", "message"),
+    [
+        ("1 PINHOLEX 48 36 40 41 24 18", "unknown COLMAP camera model 'PINHOLEX' (known: "),
+        ("1 PINHOLE 48 36 40 41 24", "camera model PINHOLE takes 4 parameters, got 3"),
+        ("1 SIMPLE_RADIAL 48 36 40 24 18", "camera model SIMPLE_RADIAL takes 4 parameters"),
+        ("1 PINHOLE 0 36 40 41 24 18", "camera size must be positive, got WIDTH 0 HEIGHT 36"),
+        ("1 PINHOLE 48 -36 40 41 24 18", "camera size must be positive"),
+        ("1 PINHOLE 48 36 40 0 24 18", "the focal length of a PINHOLE camera must be positive"),
+        ("1 SIMPLE_PINHOLE 48 36 -40 24 18", "focal length of a SIMPLE_PINHOLE camera"),
+        ("1 PINHOLE 48 36 nan 41 24 18", "PARAMS: NaN or infinite value"),
+        ("1 PINHOLE 48.5 36 40 41 24 18", "WIDTH must be an integer, got '48.5'"),
+        ("1 PINHOLE 48", "expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]'"),
+    ],
+    ids=[
+        "unknown model",
+        "too few parameters",
+        "too few for simple radial",
+        "zero width",
+        "negative height",
+        "zero fy",
+        "negative f",
+        "nan",
+        "fractional width",
+        "short line",
+    ],
+)
+def test_a_bad_camera_line_names_the_file_and_line(text_project, line, message):
+    root, _ = text_project
+    cameras_txt = write_cameras_txt(root, line)
+    with pytest.raises(DataError) as error:
+        ColmapDataset(str(root), test=["c.png"])
+    assert str(error.value).startswith(f"{cameras_txt}:3: ") and message in str(error.value)
+    assert "\n" not in str(error.value)
+
+
+def test_an_image_whose_camera_is_missing_names_the_image_line(text_project):
+    root, images_txt = text_project
+    cameras_txt = write_cameras_txt(root, "1 PINHOLE 48 36 40 41 24 18")
+    line = replace_image_line(images_txt, "b.png", {8: "9"})
+    with pytest.raises(DataError) as error:
+        ColmapDataset(str(root), test=["c.png"])
+    assert str(error.value) == (
+        f"{images_txt}:{line}: image 'b.png' has CAMERA_ID 9, which {cameras_txt} does not hold"
+    )
+    # skip: the image is left out and listed, like any other bad entry.
+    skipping = ColmapDataset(str(root), test=["c.png"], on_error="skip")
+    assert names_of(skipping, "train") == ["a.png"]
+    assert "CAMERA_ID 9" in skipping.on_error.skipped[0]
+
+
+def test_a_skipped_camera_takes_its_images_with_it(text_project):
+    root, images_txt = text_project
+    write_cameras_txt(root, "1 NOSUCH 48 36 40 41 24 18", "2 PINHOLE 48 36 40 41 24 18")
+    replace_image_line(images_txt, "b.png", {8: "2"})  # a.png and c.png stay on camera 1
+    dataset = ColmapDataset(str(root), test=["b.png"], on_error="skip")
+    assert dataset.cameras.keys() == {2} and names_of(dataset, "test") == ["b.png"]
+    assert names_of(dataset, "train") == []
+    first, *images = dataset.on_error.skipped
+    assert "unknown COLMAP camera model 'NOSUCH'" in first
+    assert [("'a.png' has CAMERA_ID 1" in m, "'c.png' has CAMERA_ID 1" in m) for m in images] == [
+        (True, False),
+        (False, True),
+    ]
+
+
+def test_duplicate_camera_ids_and_a_missing_cameras_file(text_project):
+    root, _ = text_project
+    cameras_txt = write_cameras_txt(
+        root, "1 PINHOLE 48 36 40 41 24 18", "1 SIMPLE_PINHOLE 48 36 40 24 18"
+    )
+    with pytest.raises(DataError, match=rf"{cameras_txt}:4: duplicate CAMERA_ID 1 \(first at "):
+        ColmapDataset(str(root), test=["c.png"])
+    cameras_txt.unlink()
+    with pytest.raises(DataError, match=r"no cameras.txt beside images.txt"):
+        ColmapDataset(str(root), test=["c.png"])
+
+
+def test_a_binary_camera_with_impossible_values_names_the_camera(tmp_path):
+    project(tmp_path, named_poses(["a.png", "b.png"]), binary=True)
+    cameras_bin = tmp_path / "sparse" / "0" / "cameras.bin"
+    data = struct.pack("<Q", 1) + struct.pack("<IiQQ", 1, 1, 48, 36)
+    cameras_bin.write_bytes(data + struct.pack("<4d", 0, 41, 24, 18))  # fx = 0
+    with pytest.raises(DataError) as error:
+        ColmapDataset(str(tmp_path), test=["a.png"])
+    assert str(error.value).startswith(f"{cameras_bin}: camera 1 of 1 (CAMERA_ID 1): the focal")
+    cameras_bin.write_bytes(data + struct.pack("<4d", 40, 41, float("inf"), 18))
+    with pytest.raises(DataError, match=r"camera 1 of 1 \(CAMERA_ID 1\): NaN or infinite"):
+        ColmapDataset(str(tmp_path), test=["a.png"])
+    cameras_bin.write_bytes(
+        struct.pack("<Q", 1) + struct.pack("<IiQQ", 5, 1, 48, 36) + struct.pack("<4d", 1, 1, 1, 1)
+    )
+    with pytest.raises(DataError, match=r"images.bin: image .* has CAMERA_ID 1, which .* does not"):
+        ColmapDataset(str(tmp_path), test=["a.png"])
 
 
 # ---------------------------------------------------------------------------- the CLI

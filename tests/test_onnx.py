@@ -18,7 +18,7 @@ from relocfw.core.pipeline import Relocalizer
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.model import onnx_export
-from relocfw.model.model_file import save_model
+from relocfw.model.model_file import load_model, save_model
 from relocfw.model.onnx_backbone import OnnxBackbone, onnx_relocalizer
 from relocfw.model.onnx_export import export_onnx, onnx_path
 from relocfw.plugins.centre_crop import CentreCrop
@@ -187,6 +187,60 @@ def test_export_task_says_monte_carlo_sampling_is_left_out(tmp_path, capsys):
         cli.load_for_localize(cfg, torch.device("cpu"))
 
 
+def saved_tiny_model(folder: Path) -> Path:
+    relocalizer = Relocalizer(tiny_posenet(), ExhaustiveIndex(), CentreCrop())
+    relocalizer.fit([np.zeros((36, 48, 3), np.uint8), np.full((36, 48, 3), 200, np.uint8)])
+    options = {"backbone": {"input_size": 32, "width": 0.125, "feature_dim": 32}}
+    return save_model(folder / "model.relocfw", relocalizer, options, {})
+
+
+def export_to(model: Path, out: str | None) -> None:
+    cfg = OmegaConf.create({"model": str(model), "export": {"out": out}, "backend": "onnx"})
+    cli.run_export(cfg)
+
+
+@pytest.mark.parametrize(
+    ("out", "message"),
+    [
+        ("model.relocfw", "export.out=model.relocfw is the model file itself"),
+        ("./model.relocfw", "export.out=./model.relocfw is the model file itself"),
+        ("link.onnx", "export.out=link.onnx is the model file itself"),  # a link to it
+        ("notes.txt", "export.out=notes.txt: notes.txt exists and is not an ONNX file"),
+        ("folder", "export.out=folder is a folder, not a file"),
+    ],
+    ids=["the model", "the model via ./", "a link to the model", "another file", "a folder"],
+)
+def test_export_never_replaces_the_model_or_a_file_that_is_not_onnx(
+    tmp_path, monkeypatch, out, message
+):
+    model = saved_tiny_model(tmp_path)
+    (tmp_path / "link.onnx").symlink_to(model)
+    (tmp_path / "notes.txt").write_text("a user's notes")
+    (tmp_path / "folder").mkdir()
+    kept = model.read_bytes()
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(ConfigError) as error:
+        export_to(Path("model.relocfw"), out)
+    assert str(error.value).startswith(message)
+    assert model.read_bytes() == kept and load_model(model).metadata == {}
+    assert (tmp_path / "notes.txt").read_text() == "a user's notes"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "folder",
+        "link.onnx",
+        "model.relocfw",
+        "notes.txt",
+    ]
+
+
+def test_export_replaces_an_earlier_onnx_file(tmp_path):
+    model = saved_tiny_model(tmp_path)
+    earlier = tmp_path / "robot.onnx"
+    earlier.write_bytes(b"an earlier export")
+    export_to(model, str(earlier))
+    session = ort.InferenceSession(str(earlier), providers=["CPUExecutionProvider"])
+    assert [o.name for o in session.get_outputs()] == ["positions", "quaternions", "features"]
+
+
 @pytest.fixture(scope="module")
 def trained_model(tmp_path_factory):
     home = tmp_path_factory.mktemp("onnx-run")
@@ -251,6 +305,17 @@ def test_cli_bad_backend_inputs(trained_model, tmp_path, args, message):
     )
     assert result.returncode == 2, result.stdout
     assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_cli_export_onto_the_model_file_is_refused_in_one_line(trained_model, tmp_path):
+    home, model, _ = trained_model
+    lone = tmp_path / "m"
+    lone.write_bytes(model.read_bytes())
+    result = relocfw(["task=export", "model=m", "export.out=./m"], tmp_path, home)
+    assert result.returncode == 2, result.stdout
+    (line,) = result.stderr.strip().splitlines()
+    assert "export.out=./m is the model file itself" in line
+    assert lone.read_bytes() == model.read_bytes()
 
 
 def docs_code_blocks():

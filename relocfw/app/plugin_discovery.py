@@ -9,16 +9,36 @@ plugin can only fail when it is chosen.
 
 from __future__ import annotations
 
-import importlib.util
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cache
-from importlib import metadata
-from importlib.resources import files
 from pathlib import Path
 
-ENTRY_POINT_GROUP = "relocfw.configs"
-BUILTIN_PACKAGE = "relocfw.conf"
+# The Hydra-free part lives in core, where the model loader can use it too; the names
+# stay importable from here.
+from relocfw.core.plugin_registry import (
+    BUILTIN_PACKAGE,
+    ENTRY_POINT_GROUP,
+    ConfigSource,
+    config_sources,
+    package_folder,
+)
+
+__all__ = [
+    "BUILTIN_PACKAGE",
+    "ENTRY_POINT_GROUP",
+    "GROUPS",
+    "ConfigSource",
+    "Option",
+    "config_sources",
+    "conflicts",
+    "describe_options",
+    "discover_options",
+    "first_comment",
+    "package_folder",
+    "source_of",
+]
+
 GROUPS = {
     "backbone": "Backbone",
     "index": "SimilarityIndex",
@@ -29,42 +49,11 @@ GROUPS = {
 
 
 @dataclass(frozen=True)
-class ConfigSource:
-    """A config package and the distribution that ships it."""
-
-    package: str  # importable name, e.g. "relocfw_mycrop.conf"
-    distribution: str  # e.g. "relocfw-mycrop", or "relocfw" for the built-ins
-
-
-@dataclass(frozen=True)
 class Option:
     group: str
     name: str
     source: ConfigSource
     description: str  # the YAML's first comment line
-
-
-def config_sources() -> list[ConfigSource]:
-    """The built-in config package, then every installed plugin's, sorted by name."""
-    sources = [ConfigSource(BUILTIN_PACKAGE, "relocfw")]
-    found = []
-    for entry in metadata.entry_points(group=ENTRY_POINT_GROUP):
-        distribution = entry.dist.name if entry.dist is not None else entry.name
-        found.append(ConfigSource(entry.value, distribution))
-    return sources + sorted(set(found), key=lambda s: (s.distribution, s.package))
-
-
-def package_folder(package: str) -> Path | None:
-    """Where a package's files are, found without running its __init__."""
-    try:
-        spec = importlib.util.find_spec(package)
-    except (ImportError, ValueError):
-        return None
-    if spec is None or not spec.submodule_search_locations:
-        return None
-    if package == BUILTIN_PACKAGE:
-        return Path(str(files(package)))
-    return Path(next(iter(spec.submodule_search_locations)))
 
 
 def first_comment(path: Path) -> str:

@@ -15,9 +15,11 @@ Layouts (COLMAP's "Output Format" documentation; binary is little endian):
                   uint32 camera id, NAME + NUL, uint64 n, n x (float64 x, float64 y,
                   uint64 point3D id)
 The 2-D observations and points3D are passed over: relocalization needs only where
-each image was taken. Newer COLMAP versions also write rigs and frames files; they
-still write each registered image's own world-to-camera pose in images.*, so those
-are not needed either (checked with files written by pycolmap 4.2.1).
+each image was taken. Cameras are read and checked (a known model, its parameter
+count, a positive size and focal length) and kept for the structure-based stage.
+Newer COLMAP versions also write rigs and frames files; they still write each
+registered image's own world-to-camera pose in images.*, so those are not needed
+either (checked with files written by pycolmap 4.2.1).
 """
 
 from __future__ import annotations
@@ -27,15 +29,16 @@ import mmap
 import struct
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from relocfw.core.errors import DataError
 from relocfw.data.on_error import OnError
 
-# Model id -> (name, number of parameters), checked against pycolmap 4.2.1.
-# cameras.bin stores only the id, so a model missing here cannot be read past;
-# cameras.txt names its model and lists its parameters, so any model reads there.
+# Model id -> (name, number of parameters), checked against pycolmap 4.2.1 and
+# COLMAP's src/colmap/sensor/models.h. Both formats are held to it: cameras.bin stores
+# only the id (an unknown one cannot be read past), and a cameras.txt model name
+# outside it, or a parameter count that differs, is a damaged or mistyped file.
 CAMERA_MODELS: dict[int, tuple[str, int]] = {
     0: ("SIMPLE_PINHOLE", 3),
     1: ("PINHOLE", 4),
@@ -57,6 +60,19 @@ CAMERA_MODELS: dict[int, tuple[str, int]] = {
     17: ("EQUIRECTANGULAR", 2),
 }
 MODEL_IDS = {name: (model_id, count) for model_id, (name, count) in CAMERA_MODELS.items()}
+# How many leading parameters must be positive: the focal lengths (f, or fx fy, as
+# COLMAP's focal_length_idxs), and for EQUIRECTANGULAR, which has none, the image
+# size (w h) that its two parameters are.
+SIMPLE_MODELS = {
+    "SIMPLE_PINHOLE",
+    "SIMPLE_RADIAL",
+    "RADIAL",
+    "SIMPLE_RADIAL_FISHEYE",
+    "RADIAL_FISHEYE",
+    "SIMPLE_DIVISION",
+    "SIMPLE_FISHEYE",
+}
+POSITIVE_PARAMS = {name: 1 if name in SIMPLE_MODELS else 2 for name in MODEL_IDS}
 
 IMAGE_HEAD = struct.Struct("<I4d3dI")  # image id, qvec, tvec, camera id
 CAMERA_HEAD = struct.Struct("<IiQQ")  # camera id, model id, width, height
@@ -66,13 +82,54 @@ POINT2D_BYTES = 24  # float64 x, float64 y, uint64 point3D id
 
 @dataclass(frozen=True)
 class ColmapCamera:
-    """One camera of cameras.txt / cameras.bin (intrinsics, unused for poses)."""
+    """One camera of cameras.txt / cameras.bin: COLMAP's intrinsics, as stored.
+
+    Not needed for poses; kept (ColmapDataset.camera) for a structure-based stage.
+
+    Attributes:
+        model: a name of CAMERA_MODELS, e.g. "PINHOLE".
+        width, height: the image size in pixels.
+        params: the model's parameters in COLMAP's order (PINHOLE: fx fy cx cy).
+        source: where it was read, for error messages (not compared).
+    """
 
     camera_id: int
     model: str
     width: int
     height: int
     params: tuple[float, ...]
+    source: str = field(default="", compare=False)
+
+
+def check_camera(camera: ColmapCamera) -> ColmapCamera:
+    """`camera`, if it is one COLMAP could have written, else a DataError naming its source.
+
+    Known model, the model's parameter count, a positive width and height, and
+    positive focal lengths: what a later stage projecting points relies on.
+    """
+    where = camera.source or f"CAMERA_ID {camera.camera_id}"
+    if camera.model not in MODEL_IDS:
+        raise DataError(
+            f"{where}: unknown COLMAP camera model {camera.model!r} (known: {', '.join(MODEL_IDS)})"
+        )
+    _, count = MODEL_IDS[camera.model]
+    if len(camera.params) != count:
+        raise DataError(
+            f"{where}: camera model {camera.model} takes {count} parameters, "
+            f"got {len(camera.params)}"
+        )
+    if camera.width <= 0 or camera.height <= 0:
+        raise DataError(
+            f"{where}: camera size must be positive, got WIDTH {camera.width} "
+            f"HEIGHT {camera.height}"
+        )
+    positive = camera.params[: POSITIVE_PARAMS[camera.model]]
+    if not all(value > 0 for value in positive):
+        what = "image size" if camera.model == "EQUIRECTANGULAR" else "focal length"
+        raise DataError(
+            f"{where}: the {what} of a {camera.model} camera must be positive, got {list(positive)}"
+        )
+    return camera
 
 
 @dataclass(frozen=True)
@@ -194,28 +251,38 @@ def _image_from_line(line: str, source: str) -> ColmapImage:
     )
 
 
-def read_cameras_text(path: Path) -> list[ColmapCamera]:
-    """The cameras of a cameras.txt; any model name is accepted (its PARAMS are read)."""
+def read_cameras_text(path: Path, on_error: OnError | None = None) -> list[ColmapCamera]:
+    """The cameras of a cameras.txt, in file order, each checked (check_camera).
+
+    A bad camera line goes to `on_error` (fail: raise; skip: leave it out, and the
+    images taken with it are then left out for want of their camera).
+    """
+    on_error = on_error or OnError()
     path = Path(path)
     cameras = []
     for number, raw in enumerate(_text_lines(path), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
-        source = f"{path}:{number}"
-        fields = line.split()
-        if len(fields) < 4:
-            raise DataError(f"{source}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]'")
-        cameras.append(
-            ColmapCamera(
-                camera_id=_integer(fields[0], source, "CAMERA_ID"),
-                model=fields[1],
-                width=_integer(fields[2], source, "WIDTH"),
-                height=_integer(fields[3], source, "HEIGHT"),
-                params=_floats(fields[4:], source, "PARAMS"),
-            )
-        )
+        try:
+            cameras.append(check_camera(_camera_from_line(line, f"{path}:{number}")))
+        except DataError as error:
+            on_error.handle(error)
     return cameras
+
+
+def _camera_from_line(line: str, source: str) -> ColmapCamera:
+    fields = line.split()
+    if len(fields) < 4:
+        raise DataError(f"{source}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]'")
+    return ColmapCamera(
+        camera_id=_integer(fields[0], source, "CAMERA_ID"),
+        model=fields[1],
+        width=_integer(fields[2], source, "WIDTH"),
+        height=_integer(fields[3], source, "HEIGHT"),
+        params=_floats(fields[4:], source, "PARAMS"),
+        source=source,
+    )
 
 
 def _number_text(value: float) -> str:
@@ -373,8 +440,14 @@ def read_images_binary(path: Path) -> list[ColmapImage]:
     return images
 
 
-def read_cameras_binary(path: Path) -> list[ColmapCamera]:
-    """The cameras of a cameras.bin; a model id not in CAMERA_MODELS is an error."""
+def read_cameras_binary(path: Path, on_error: OnError | None = None) -> list[ColmapCamera]:
+    """The cameras of a cameras.bin, in file order, each checked (check_camera).
+
+    A model id not in CAMERA_MODELS (its parameter count is unknown) or a truncated
+    file always raises: nothing after the damage can be found again. A camera with
+    impossible values goes to `on_error`, as in read_cameras_text.
+    """
+    on_error = on_error or OnError()
     cameras = []
     with _mapped(path) as reader:
         count = reader.count(CAMERA_HEAD.size, "cameras")
@@ -389,7 +462,14 @@ def read_cameras_binary(path: Path) -> list[ColmapCamera]:
                 )
             model, params = CAMERA_MODELS[model_id]
             values = reader.unpack(struct.Struct(f"<{params}d"), f"the parameters of {what}")
-            cameras.append(ColmapCamera(camera_id, model, width, height, tuple(values)))
+            source = f"{reader.path}: {what} (CAMERA_ID {camera_id})"
+            camera = ColmapCamera(camera_id, model, width, height, tuple(values), source)
+            try:
+                if not all(math.isfinite(v) for v in values):
+                    raise DataError(f"{source}: NaN or infinite value in PARAMS {list(values)}")
+                cameras.append(check_camera(camera))
+            except DataError as error:
+                on_error.handle(error)
         reader.finish("cameras")
     return cameras
 

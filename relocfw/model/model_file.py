@@ -3,6 +3,13 @@
 Everything needed to localize new images, loaded without Hydra or the training data:
 each part is stored as the import path of its class, the options it was built with
 and its state (tensors only, read back with torch's safe weights-only loader).
+
+What a model file may name is limited to registered plugins: torch's weights-only
+loader stops code hidden in the pickle, but the loader itself imports the class a
+file names and calls it with the file's options, so a file naming e.g. `os.system`
+would run a shell command. The class path is therefore checked against the
+`_target_`s of the part's config group (relocfw.core.plugin_registry) before
+anything is imported, and the imported class must implement the part's interface.
 """
 
 from __future__ import annotations
@@ -13,17 +20,88 @@ from typing import Any
 
 import torch
 
-from relocfw.core.errors import DataError
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.core.pipeline import Relocalizer
+from relocfw.core.plugin_registry import registered_targets
 from relocfw.core.values import Pose
 from relocfw.model.checkpoints import read_torch_file, save_atomic
 
 MODEL_FORMAT = 2  # 2: input normalisation and training crop_scale saved in the state
 MODEL_KIND = "relocfw-model"
+# The parts of a model file: the config group that registers their classes, and the
+# interface the class must implement.
+PART_INTERFACES: dict[str, type] = {
+    "backbone": Backbone,
+    "index": SimilarityIndex,
+    "crop": CropSearch,
+}
 
 
 def class_path(obj: object) -> str:
     return f"{type(obj).__module__}.{type(obj).__qualname__}"
+
+
+def registered_class_path(part: object, group: str) -> str:
+    """The `_target_` under which `part`'s class is registered in config group `group`.
+
+    Usually its own import path; a YAML may also name the class where its package
+    re-exports it, so a target with the same class name is imported and compared
+    (the part exists, so its plugin is already imported and trusted).
+
+    Raises:
+        ConfigError: the class is registered nowhere: load_model would refuse the file.
+    """
+    own = class_path(part)
+    targets = registered_targets(group)
+    if own in targets:
+        return own
+    name = type(part).__name__
+    for target in sorted(t for t in targets if t.rpartition(".")[2] == name):
+        module, _, attribute = target.rpartition(".")
+        try:
+            if getattr(importlib.import_module(module), attribute, None) is type(part):
+                return target
+        except ImportError:
+            continue
+    raise ConfigError(
+        f"cannot save the {group} {own}: it is not a registered plugin (no {group}/*.yaml "
+        "names it as _target_), so load_model would refuse the model file; register it "
+        "as docs/plugins.md shows"
+    )
+
+
+def plugin_class(payload: dict[str, Any], group: str, source: Path) -> type:
+    """The class a model file names for part `group`, if it is a registered plugin.
+
+    The class path is checked against the registry before it is imported: importing
+    a module runs its code, and an unregistered name is refused without running any.
+    """
+    part = payload.get(group)
+    if not isinstance(part, dict):
+        raise DataError(f"{source}: damaged model file ({group} is not a mapping)")
+    path, options = part.get("class"), part.get("options")
+    if not isinstance(path, str):
+        raise DataError(f"{source}: damaged model file ({group} class is {path!r}, not a name)")
+    if not isinstance(options, dict) or not all(isinstance(key, str) for key in options):
+        raise DataError(
+            f"{source}: damaged model file ({group} options are {type(options).__name__}, "
+            "not a mapping of option names)"
+        )
+    interface = PART_INTERFACES[group].__name__
+    if path not in registered_targets(group):
+        raise DataError(
+            f"{source}: refused the {group} class {path!r}: it is not a registered "
+            f"{interface} plugin (a model file may name only classes that an installed "
+            "config group names as _target_; relocfw task=plugins lists them), so nothing "
+            "was imported or run"
+        )
+    found = import_class(path, source)
+    if not (isinstance(found, type) and issubclass(found, PART_INTERFACES[group])):
+        raise DataError(
+            f"{source}: refused the {group} class {path!r}: it is not a {interface} subclass"
+        )
+    return found
 
 
 def import_class(path: str, source: Path) -> type:
@@ -49,6 +127,9 @@ def save_model(
         relocalizer: a fitted Relocalizer.
         options: constructor options of "backbone", "index" and "crop".
         metadata: plain values describing the data (dataset settings, sizes, names).
+
+    Raises:
+        ConfigError: a part's class is not a registered plugin (see load_model).
     """
     parts = {"backbone": relocalizer.backbone, "index": relocalizer.index, "crop": relocalizer.crop}
     payload: dict[str, Any] = {
@@ -61,7 +142,10 @@ def save_model(
         "metadata": metadata,
     }
     for name, part in parts.items():
-        payload[name] = {"class": class_path(part), "options": dict(options.get(name, {}))}
+        payload[name] = {
+            "class": registered_class_path(part, name),
+            "options": dict(options.get(name, {})),
+        }
     payload["backbone"]["state"] = {
         k: v.detach().cpu() for k, v in relocalizer.backbone.state_dict().items()
     }
@@ -77,7 +161,17 @@ def save_model(
 def load_model(
     path: Path, device: str | torch.device = "cpu", batch_size: int = 16, scoring: str = "plain"
 ) -> Relocalizer:
-    """The Relocalizer saved in `path`, ready to localize."""
+    """The Relocalizer saved in `path`, ready to localize.
+
+    A model file is data, but loading one builds its parts: it trusts the installed
+    plugins, not the file. Each part's class must be a `_target_` registered by a
+    config group (relocfw's own or an installed plugin package's) and implement that
+    part's interface; anything else is refused before it is imported.
+
+    Raises:
+        DataError: not a model file of this format, damaged, or naming a class that is
+            not a registered plugin of the right interface.
+    """
     path = Path(path)
     payload = read_torch_file(path, "model")
     if not isinstance(payload, dict) or payload.get("kind") != MODEL_KIND:
@@ -88,14 +182,16 @@ def load_model(
             f"{MODEL_FORMAT}: run `relocfw task=relocalize` again with this version to "
             "write a new one"
         )
+    # Every class is checked before any part is built: a refused crop class must not
+    # leave a half-built backbone behind, nor follow work done for it.
+    classes = {group: plugin_class(payload, group, path) for group in PART_INTERFACES}
     try:
-        backbone_class = import_class(payload["backbone"]["class"], path)
-        options = {**payload["backbone"]["options"], **backbone_class.rebuild_overrides}
-        backbone = backbone_class(**options)
+        options = {**payload["backbone"]["options"], **classes["backbone"].rebuild_overrides}
+        backbone = classes["backbone"](**options)
         backbone.load_state_dict(payload["backbone"]["state"])
-        index = import_class(payload["index"]["class"], path)(**payload["index"]["options"])
+        index = classes["index"](**payload["index"]["options"])
         index.load_state(payload["index"]["state"])
-        crop = import_class(payload["crop"]["class"], path)(**payload["crop"]["options"])
+        crop = classes["crop"](**payload["crop"]["options"])
     except (KeyError, TypeError, RuntimeError) as error:
         raise DataError(f"{path}: damaged or incompatible model file ({error})") from error
     relocalizer = Relocalizer(

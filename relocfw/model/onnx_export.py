@@ -82,6 +82,37 @@ def onnx_path(model: Path, out: str | None = None) -> Path:
     return model.with_name(model.name + ".onnx")
 
 
+def export_destination(model: Path, out: str | None = None) -> Path:
+    """Where task=export may write the ONNX network of model file `model` (onnx_path).
+
+    An export replaces only an ONNX file: never the model file it comes from (compared
+    after resolving both, so `./m` and `m`, or a link to it, are the same file), and
+    no other existing file unless its name ends in `.onnx`. The rule is the name, not
+    the content: predictable, and a user's file with another suffix is never lost.
+
+    Raises:
+        ConfigError: naming export.out, when the destination is not one to write.
+    """
+    model = Path(model).expanduser()
+    target = onnx_path(model, out)
+    named = f"export.out={out}" if out else f"export.out (default {target})"
+    if target.resolve() == model.resolve() or (
+        target.exists() and model.exists() and target.samefile(model)
+    ):
+        raise ConfigError(
+            f"{named} is the model file itself: exporting would replace it with the ONNX "
+            f"network; leave export.out unset (writes {onnx_path(model)}) or name another file"
+        )
+    if target.exists() and not target.is_file():
+        raise ConfigError(f"{named} is a folder, not a file: name a file ending in .onnx")
+    if target.exists() and target.suffix.lower() != ".onnx":
+        raise ConfigError(
+            f"{named}: {target} exists and is not an ONNX file (its name does not end in "
+            ".onnx); task=export replaces only .onnx files: name another file"
+        )
+    return target
+
+
 def weights_fingerprint(backbone: Backbone) -> str:
     """SHA-256 of the backbone's state (weights and buffers): ties an ONNX file to the
     model file it was exported from, so a stale export is refused, not used."""
