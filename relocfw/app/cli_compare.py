@@ -20,6 +20,7 @@ from relocfw.core.options import integer_at_least
 from relocfw.core.pipeline import Relocalizer
 from relocfw.data.frames import mean_pose
 from relocfw.report.evaluation import MethodResult, constant_answer, evaluate
+from relocfw.report.units import PositionUnit, unit_of
 
 
 def compose_method(overrides: list[str], name: str) -> tuple[DictConfig, Mapping[str, str]]:
@@ -97,10 +98,13 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
     seed_runs = {seed: {} for seed in seeds}
     maps = {seed: {} for seed in seeds}
     training, floors = {}, {}
+    units: dict[str, PositionUnit] = {}
     for scene in scenes:
         first_cfg, first_choices = plans[seeds[0], scene, next(iter(methods))]
         dataset = build(first_cfg, "dataset", first_choices["dataset"])
         label = scene or first_choices["dataset"]
+        units[label] = unit_of(dataset)
+        unit = one_unit(units)  # a mixed list fails before this scene trains
         train = relocalize_task.load_split(dataset, "train", quiet)
         test = relocalize_task.load_split(dataset, "test", quiet)
         relocalize_task.write_skipped(dataset, run_dir)
@@ -117,7 +121,9 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
                 method.index.check_map_size(len(train[0]))
                 # One curve per distinct model: rows sharing a model share its file.
                 seed_dir = run_dir / f"seed_{seed}" if len(seeds) > 1 else run_dir
-                prepare_model(method_cfg, method, train, device, curve_dir=seed_dir)
+                prepare_model(
+                    method_cfg, method, train, device, curve_dir=seed_dir, unit=unit_of(dataset)
+                )
                 relocalizer = method.relocalizer(device, int(cfg.query_batch_size))
                 result, features = relocalize_task.run_method(
                     rows[name], relocalizer, train, test, quiet
@@ -140,9 +146,23 @@ def run_compare(cfg: DictConfig, device: torch.device) -> None:
             run_dir / f"seed_{seed}" if len(seeds) > 1 else run_dir,
             seed=seed,
             seed_runs=seed_runs[seed],
+            unit=unit,
         )
     if len(seeds) > 1:
-        write_seed_comparison(results, floors, rows[reference], run_dir, bootstrap_seed=seeds[0])
+        write_seed_comparison(
+            results, floors, rows[reference], run_dir, bootstrap_seed=seeds[0], unit=unit
+        )
+    if unit.note:
+        print(f"note: {unit.note}")
+
+
+def one_unit(units: Mapping[str, PositionUnit]) -> PositionUnit:
+    """The positions' unit shared by every scene: one table cannot mix metres with
+    model units (its average row would add them)."""
+    if len({unit.metric for unit in units.values()}) > 1:
+        named = ", ".join(f"{scene}: {unit.name}" for scene, unit in units.items())
+        raise ConfigError(f"compare.scenes measure positions in different units ({named})")
+    return next(iter(units.values()))
 
 
 def rerun_crop_seeds(

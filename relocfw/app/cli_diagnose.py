@@ -20,6 +20,7 @@ from relocfw.app.diagnose_task import write_diagnosis
 from relocfw.core.options import integer_at_least
 from relocfw.core.version import VERSION
 from relocfw.report.diagnosis import diagnose
+from relocfw.report.units import unit_of
 
 
 def diagnose_options(cfg: DictConfig) -> tuple[int, int]:
@@ -40,7 +41,9 @@ def run_diagnose(cfg: DictConfig, device: torch.device) -> None:
     quiet = bool(cfg.quiet)
     train = relocalize_task.load_split(dataset, "train", quiet)
     method.index.check_map_size(len(train[0]))
-    checkpoint = prepare_model(cfg, method, train, device, curve=run_dir / "training_curve.png")
+    checkpoint = prepare_model(
+        cfg, method, train, device, curve=run_dir / "training_curve.png", unit=unit_of(dataset)
+    )
     test = relocalize_task.load_split(dataset, "test", quiet)
     relocalize_task.write_skipped(dataset, run_dir)
     relocalizer = method.relocalizer(device, int(cfg.query_batch_size))
@@ -67,4 +70,13 @@ def run_diagnose(cfg: DictConfig, device: torch.device) -> None:
         "table3_queries": table3_queries,
         "relocfw_version": VERSION,
     }
-    write_diagnosis(scene, queries, test[1], run_dir, settings, curve_queries, table3_queries)
+    write_diagnosis(
+        scene,
+        queries,
+        test[1],
+        run_dir,
+        settings,
+        curve_queries,
+        table3_queries,
+        unit=unit_of(dataset),
+    )

@@ -30,6 +30,7 @@ from relocfw.core.sampling import configured_samples
 from relocfw.model.distributed import World
 from relocfw.model.training import TrainSettings
 from relocfw.report.figures import training_curve
+from relocfw.report.units import METRES, PositionUnit
 
 INTERFACES = {"backbone": Backbone, "index": SimilarityIndex, "crop": CropSearch}
 
@@ -247,7 +248,8 @@ def check_pretrained(cfg: DictConfig, choices: Mapping[str, str], backbone: Back
 def dataset_settings(cfg: DictConfig) -> dict[str, Any]:
     """What identifies the data: the dataset options without where caches live."""
     values = OmegaConf.to_container(cfg.dataset, resolve=True)
-    return {k: v for k, v in values.items() if k not in ("cache_dir", "quiet")}
+    # metric only names the unit of the reports: the same poses train the same model.
+    return {k: v for k, v in values.items() if k not in ("cache_dir", "quiet", "metric")}
 
 
 def prepare_model(
@@ -258,6 +260,7 @@ def prepare_model(
     world: World | None = None,
     curve: Path | None = None,
     curve_dir: Path | None = None,
+    unit: PositionUnit = METRES,
 ) -> Path:
     """Train the method's network or reuse its checkpoint; print which.
 
@@ -267,6 +270,7 @@ def prepare_model(
             trains go to a `tensorboard/` folder beside it.
         curve_dir: instead of `curve`, a folder: the curve is then
             `training_curve_<checkpoint>.png` there, one file per distinct model.
+        unit: what the curve's position errors are in (the dataset's unit).
     """
     log = str(cfg.train.get("log", "none"))
     if log not in ("none", "tensorboard"):
@@ -293,7 +297,7 @@ def prepare_model(
         curve = curve_dir / f"training_curve_{checkpoint.stem}.png"
     if curve is not None:
         history = training.history or {"loss": training.losses}  # an older checkpoint
-        training_curve(history, curve, f"({checkpoint.name})")
+        training_curve(history, curve, f"({checkpoint.name})", unit)
     if training.reused:
         how = "reused"
     elif training.resumed_from:

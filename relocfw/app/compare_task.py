@@ -24,7 +24,15 @@ from relocfw.report.comparison import (
     uncertainty_check,
 )
 from relocfw.report.evaluation import MethodResult, constant_answer, uncertainty_quality_of
-from relocfw.report.seed_comparison import SeedResults, seed_comparison, seed_markdown, seed_rows
+from relocfw.report.seed_comparison import SeedResults, seed_comparison, seed_footnote, seed_rows
+from relocfw.report.units import (
+    METRES,
+    PositionUnit,
+    json_note,
+    relabel_table,
+    relabel_tree,
+    text_note,
+)
 
 
 @dataclass(frozen=True)
@@ -48,6 +56,7 @@ def write_comparison(
     run_dir: Path,
     seed: int = 0,
     seed_runs: Mapping[str, Mapping[str, Mapping[int, MethodResult]]] | None = None,
+    unit: PositionUnit = METRES,
 ) -> dict[str, Any]:
     """Table 1 (Markdown + CSV, printed), per-scene results and the five figures.
 
@@ -55,15 +64,23 @@ def write_comparison(
         seed_runs: scene -> method -> crop-search seed -> result, for the methods
             whose crop search is randomised; their spread goes to crop_seeds.md and
             comparison.json.
+        unit: the positions' unit; the Markdown files start with its note, the JSON
+            carries it as `units_note`, the CSV has the unit in its column titles.
+
+    Returns:
+        What comparison.json holds.
     """
     run_dir = Path(run_dir)
-    header, rows = table_rows(median_errors(results), reference)
+    header, rows = table_rows(median_errors(results), reference, unit)
     markdown = as_markdown(header, rows)
-    write_text_atomic(markdown, run_dir / "comparison.md")
+    write_text_atomic(text_note(unit) + markdown, run_dir / "comparison.md")
     write_text_atomic(as_csv(header, rows), run_dir / "comparison.csv")
-    print("\nMedian position (m) and orientation (deg) errors; average = mean over scenes\n")
+    print(
+        f"\nMedian position ({unit.name}) and orientation (deg) errors; "
+        "average = mean over scenes\n"
+    )
     print(markdown)
-    summary: dict[str, Any] = {"reference": reference, "scenes": {}}
+    summary: dict[str, Any] = {**json_note(unit), "reference": reference, "scenes": {}}
     written = []
     for scene, by_method in results.items():
         name = safe_name(scene)
@@ -71,13 +88,17 @@ def write_comparison(
         floor = constant_answer(
             "mean training pose", mean_pose(training_frames[scene]), method_results[0].frames
         )
-        table = write_results([floor, *method_results], run_dir, name=f"_{name}")
+        table = write_results([floor, *method_results], run_dir, name=f"_{name}", unit=unit)
         print(f"{scene}:\n{table}\n")
         title = f"({scene})"
         out = run_dir / name
         written += [
             figures.error_histogram(
-                method_results, "position", Path(f"{out}_position_error_histogram.png"), title
+                method_results,
+                "position",
+                Path(f"{out}_position_error_histogram.png"),
+                title,
+                unit,
             ),
             figures.error_histogram(
                 method_results,
@@ -85,12 +106,13 @@ def write_comparison(
                 Path(f"{out}_orientation_error_histogram.png"),
                 title,
             ),
-            figures.error_curves(method_results, Path(f"{out}_error_per_image.png"), title),
+            figures.error_curves(method_results, Path(f"{out}_error_per_image.png"), title, unit),
             figures.trajectory_top_down(
                 training_frames[scene],
                 method_results,
                 Path(f"{out}_trajectory_top_down.png"),
                 title,
+                unit,
             ),
         ]
         view = maps.get(scene)
@@ -117,11 +139,12 @@ def write_comparison(
                     quality,
                     Path(f"{out}_{safe_name(method)}_uncertainty.png"),
                     title,
+                    unit,
                 )
             )
             print(
                 f"{method} uncertainty quality ({scene}): AUSE position "
-                f"{quality['position']['ause']:.3f} m, orientation "
+                f"{quality['position']['ause']:.3f} {unit.name}, orientation "
                 f"{quality['orientation']['ause']:.2f} deg; Spearman(spread, error) position "
                 f"{quality['position']['spearman_spread_error']:.2f}, orientation "
                 f"{quality['orientation']['spearman_spread_error']:.2f}"
@@ -130,27 +153,43 @@ def write_comparison(
             print(
                 f"{method} uncertainty ({scene}): median position error of the "
                 f"{check['queries_per_group']} most uncertain queries "
-                f"{check['most_uncertain_median_position_m']:.3f} m, of the least uncertain "
-                f"{check['least_uncertain_median_position_m']:.3f} m "
+                f"{check['most_uncertain_median_position_m']:.3f} {unit.name}, of the least "
+                f"uncertain {check['least_uncertain_median_position_m']:.3f} {unit.name} "
                 f"(rank correlation {check['spread_error_rank_correlation']:.2f})"
             )
-        summary["scenes"][scene] = {"uncertainty": checks}
+        # Below the method names (a user's words), every key is a report key.
+        summary["scenes"][scene] = {
+            "uncertainty": {m: relabel_tree(c, unit) for m, c in checks.items()}
+        }
     spreads = {
         scene: {method: crop_seed_spread(runs) for method, runs in by_method.items()}
         for scene, by_method in (seed_runs or {}).items()
         if by_method
     }
     if spreads:
-        table = crop_seed_markdown(spreads)
-        write_text_atomic(table, run_dir / "crop_seeds.md")
+        table = crop_seed_markdown(spreads, unit)
+        write_text_atomic(text_note(unit) + table, run_dir / "crop_seeds.md")
         print("\nSpread of the medians over crop-search seeds (same model and map):\n")
         print(table)
         for scene, by_method in spreads.items():
-            summary["scenes"].setdefault(scene, {})["crop_seed_spread"] = by_method
+            summary["scenes"].setdefault(scene, {})["crop_seed_spread"] = {
+                method: relabel_tree(spread, unit) for method, spread in by_method.items()
+            }
     summary["figures"] = [str(p) for p in written]
     write_text_atomic(strict_json(summary), run_dir / "comparison.json")
     print(f"\ncomparison: {run_dir / 'comparison.md'}; figures: {len(written)} PNG in {run_dir}")
     return summary
+
+
+def seed_tables(
+    table: Mapping[str, Mapping[str, Mapping[str, object]]],
+    reference: str,
+    seeds: Sequence[int],
+    unit: PositionUnit,
+) -> tuple[str, str]:
+    """The seed table as Markdown (with its footnote) and as CSV, in `unit`'s terms."""
+    header, rows = relabel_table(*seed_rows(table, reference), unit)
+    return as_markdown(header, rows) + seed_footnote(seeds, unit.metric), as_csv(header, rows)
 
 
 def write_seed_comparison(
@@ -159,16 +198,25 @@ def write_seed_comparison(
     reference: str,
     run_dir: Path,
     bootstrap_seed: int = 0,
+    unit: PositionUnit = METRES,
 ) -> dict[str, Any]:
     """comparison.md / .csv / .json at the top of the run: the spread over training seeds
-    and each method's paired test against `reference` (printed too)."""
+    and each method's paired test against `reference` (printed too).
+
+    Returns:
+        What comparison.json holds (keys in `unit`'s terms).
+    """
     run_dir = Path(run_dir)
     seeds = sorted(results)
     table = seed_comparison(results, floors, reference, bootstrap_seed)
-    markdown = seed_markdown(table, reference, seeds)
-    write_text_atomic(markdown, run_dir / "comparison.md")
-    write_text_atomic(as_csv(*seed_rows(table, reference)), run_dir / "comparison.csv")
-    report = {"reference": reference, "seeds": seeds, "scenes": table}
+    markdown, csv_text = seed_tables(table, reference, seeds, unit)
+    write_text_atomic(text_note(unit) + markdown, run_dir / "comparison.md")
+    write_text_atomic(csv_text, run_dir / "comparison.csv")
+    scenes = {
+        scene: {method: relabel_tree(stats, unit) for method, stats in by_method.items()}
+        for scene, by_method in table.items()
+    }
+    report = {**json_note(unit), "reference": reference, "seeds": seeds, "scenes": scenes}
     write_text_atomic(strict_json(report), run_dir / "comparison.json")
     print(f"\nOver training seeds {seeds} (each seed's tables and figures: seed_<n>/)\n")
     print(markdown)

@@ -19,6 +19,14 @@ from relocfw.core.json_output import strict_json
 from relocfw.model.checkpoints import write_text_atomic
 from relocfw.report import diagnose_figures
 from relocfw.report.diagnosis import Picks, QueryWindows, picks_of, summarise_queries
+from relocfw.report.units import (
+    METRES,
+    PositionUnit,
+    json_note,
+    relabel_key,
+    relabel_tree,
+    text_note,
+)
 
 CHOICE_NAMES = {
     "centre": "centre crop",
@@ -51,14 +59,17 @@ def p_value(value: float) -> str:
     return "n/a" if math.isnan(value) else f"{value:.2g}"
 
 
-def as_markdown(scene: str, summary: dict[str, Any]) -> str:
-    """The scene's table: each crop choice's errors, then the premise's tests."""
+def as_markdown(scene: str, summary: dict[str, Any], unit: PositionUnit = METRES) -> str:
+    """The scene's table: each crop choice's errors (`summarise_queries`' metre-named
+    keys; titles in `unit`), then the premise's tests."""
+    pos = unit.name
     lines = [
         f"## {scene}: {summary['queries']} queries, "
         f"{summary['mean_offsets_per_query']:.1f} crop offsets "
         f"({summary['mean_windows_per_query']:.1f} distinct windows) per query",
         "",
-        "| crop choice | median pos (m) | mean pos (m) | median ori (deg) | mean ori (deg) |",
+        f"| crop choice | median pos ({pos}) | mean pos ({pos}) | median ori (deg) "
+        "| mean ori (deg) |",
         "|---|---|---|---|---|",
     ]
     for key, name in CHOICE_NAMES.items():
@@ -84,11 +95,14 @@ def as_markdown(scene: str, summary: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def windows_csv(queries: Sequence[QueryWindows], picks: Sequence[Picks]) -> str:
-    """One row per query and crop offset, with which rules chose it."""
+def windows_csv(
+    queries: Sequence[QueryWindows], picks: Sequence[Picks], unit: PositionUnit = METRES
+) -> str:
+    """One row per query and crop offset, with which rules chose it; the positions'
+    unit is in the column names, so the file needs no note."""
     stream = io.StringIO()
     writer = csv.writer(stream)
-    writer.writerow(WINDOW_COLUMNS)
+    writer.writerow([relabel_key(column, unit) for column in WINDOW_COLUMNS])
     for query, chosen in zip(queries, picks, strict=True):
         for i in query.offsets:
             x, y, size = query.crops[i]
@@ -119,6 +133,7 @@ def write_diagnosis(
     settings: dict[str, Any],
     curve_queries: int = 4,
     table3_queries: int = 3,
+    unit: PositionUnit = METRES,
 ) -> dict[str, Any]:
     """diagnose.json, diagnose.md (printed), diagnose_windows.csv and the figures.
 
@@ -129,6 +144,8 @@ def write_diagnosis(
         settings: how the numbers were made (method, model, dataset); saved as is.
         curve_queries: queries whose curves over the offset are drawn (0: no figure).
         table3_queries: queries drawn with their crops outlined (0: no figure).
+        unit: the positions' unit: diagnose.md starts with its note, diagnose.json
+            carries it as `units_note`, the CSV and figures name it.
 
     Returns:
         What diagnose.json holds.
@@ -137,32 +154,34 @@ def write_diagnosis(
     picks = picks_of(queries)
     summary = summarise_queries(queries)
     summary["mean_windows_per_query"] = float(np.mean([q.windows for q in queries]))
-    markdown = as_markdown(scene, summary)
-    write_text_atomic(markdown, run_dir / "diagnose.md")
-    write_text_atomic(windows_csv(queries, picks), run_dir / "diagnose_windows.csv")
+    markdown = as_markdown(scene, summary, unit)
+    write_text_atomic(text_note(unit) + markdown, run_dir / "diagnose.md")
+    write_text_atomic(windows_csv(queries, picks, unit), run_dir / "diagnose_windows.csv")
     title = f"({scene})"
     written = [
         diagnose_figures.distance_vs_error(
-            queries, picks, run_dir / "diagnose_distance_vs_error.png", title
+            queries, picks, run_dir / "diagnose_distance_vs_error.png", title, unit
         )
     ]
     curves = diagnose_figures.evenly_spaced(len(queries), curve_queries)
     if curves:
         written.append(
             diagnose_figures.offset_curves(
-                queries, picks, curves, run_dir / "diagnose_offset_curves.png", title
+                queries, picks, curves, run_dir / "diagnose_offset_curves.png", title, unit
             )
         )
     shown = diagnose_figures.evenly_spaced(len(queries), table3_queries)
     if shown:
         written.append(
             diagnose_figures.crops_on_images(
-                queries, picks, images, shown, run_dir / "diagnose_crops.png", title
+                queries, picks, images, shown, run_dir / "diagnose_crops.png", title, unit
             )
         )
     report = {
+        **json_note(unit),
         "settings": settings,
-        "scenes": {scene: summary},
+        # The scene's name is the user's; below it every key is a report key.
+        "scenes": {scene: relabel_tree(summary, unit)},
         "figures": [str(p) for p in written],
     }
     write_text_atomic(strict_json(report), run_dir / "diagnose.json")
@@ -171,4 +190,6 @@ def write_diagnosis(
         f"diagnosis: {run_dir / 'diagnose.md'}, {run_dir / 'diagnose.json'}, "
         f"{run_dir / 'diagnose_windows.csv'}; figures: {len(written)} PNG in {run_dir}"
     )
+    if unit.note:
+        print(f"note: {unit.note}")
     return report

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Protocol
@@ -30,6 +29,7 @@ from relocfw.report.evaluation import (
     summarise,
 )
 from relocfw.report.table import format_table
+from relocfw.report.units import METRES, PositionUnit, json_note, relabel_row, text_note
 
 BASELINES = ("mean_pose", "posenet")
 
@@ -129,16 +129,25 @@ def summary_csv(summaries: Sequence[dict[str, Any]]) -> str:
     return stream.getvalue()
 
 
-def write_results(results: Sequence[MethodResult], run_dir: Path, name: str = "") -> str:
+def write_results(
+    results: Sequence[MethodResult], run_dir: Path, name: str = "", unit: PositionUnit = METRES
+) -> str:
     """results{name}.csv (per query), summary{name}.json and .csv (per method) and
-    table{name}.txt; returns the table."""
+    table{name}.txt; returns the table.
+
+    Each file names the positions' unit as it is written: table{name}.txt starts with
+    the unit's note, every summary row (JSON and CSV) carries it as `units_note`, and
+    results{name}.csv has the unit in its column names. Files from earlier runs in
+    `run_dir` are replaced, never annotated.
+    """
     summaries = [summarise(r) for r in results]
+    rows = [relabel_row(summary, unit) | json_note(unit) for summary in summaries]
     run_dir = Path(run_dir)
-    write_text_atomic(per_image_csv(results), run_dir / f"results{name}.csv")
-    write_text_atomic(strict_json(summaries), run_dir / f"summary{name}.json")
-    write_text_atomic(summary_csv(summaries), run_dir / f"summary{name}.csv")
-    table = format_table(summaries)
-    write_text_atomic(table + "\n", run_dir / f"table{name}.txt")
+    write_text_atomic(per_image_csv(results, unit), run_dir / f"results{name}.csv")
+    write_text_atomic(strict_json(rows), run_dir / f"summary{name}.json")
+    write_text_atomic(summary_csv(rows), run_dir / f"summary{name}.csv")
+    table = format_table(summaries, unit)
+    write_text_atomic(text_note(unit) + table + "\n", run_dir / f"table{name}.txt")
     return table
 
 
@@ -151,8 +160,10 @@ def relocalize(
     baselines: Sequence[str] = BASELINES,
     centre_label: str = "posenet (centre crop)",
     quiet: bool = False,
+    unit: PositionUnit = METRES,
 ) -> list[MethodResult]:
-    """The main job after training: the method and its baselines, results written."""
+    """The main job after training: the method and its baselines, results written
+    with the positions' `unit` (relocfw.report.units.unit_of the dataset)."""
     results = []
     if "mean_pose" in baselines:
         results.append(constant_answer("mean training pose", mean_pose(train[0]), test[0]))
@@ -174,34 +185,8 @@ def relocalize(
         # The map is already fitted; only the queries run again.
         results.append(evaluate(centre_label, centre, *test, quiet=quiet))
     results.append(method_result)
-    print(write_results(results, run_dir))
+    print(write_results(results, run_dir, unit=unit))
     print(f"\nresults: {Path(run_dir) / 'results.csv'}, {Path(run_dir) / 'summary.json'}")
+    if unit.note:
+        print(f"note: {unit.note}")
     return results
-
-
-# Reports that say in words what their numbers are (see note_units).
-TEXT_REPORTS = ("table*.txt", "comparison.md", "crop_seeds.md", "diagnose.md")
-JSON_REPORTS = ("summary*.json", "comparison.json", "diagnose.json")
-
-
-def note_units(run_dir: Path, note: str) -> list[Path]:
-    """Say `note` (e.g. that positions are not in metres) in every report of a run.
-
-    The Markdown and text tables get it as their first line, the JSON reports as a
-    "units_note" key (in every row of a list). Returns the files changed.
-    """
-    changed = []
-    for pattern in TEXT_REPORTS:
-        for path in sorted(Path(run_dir).rglob(pattern)):
-            write_text_atomic(f"Note: {note}.\n\n" + path.read_text(), path)
-            changed.append(path)
-    for pattern in JSON_REPORTS:
-        for path in sorted(Path(run_dir).rglob(pattern)):
-            report = json.loads(path.read_text())
-            if isinstance(report, list):
-                report = [{**row, "units_note": note} for row in report]
-            else:
-                report = {"units_note": note, **report}
-            write_text_atomic(strict_json(report), path)
-            changed.append(path)
-    return changed

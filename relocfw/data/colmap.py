@@ -27,7 +27,17 @@ from relocfw.core.geometry import (
     quaternion_to_matrix,
 )
 from relocfw.core.values import Pose
-from relocfw.data.colmap_format import ColmapImage, read_images_binary, read_images_text
+from relocfw.data.colmap_cameras import (
+    images_with_cameras,
+    model_cameras_file,
+    read_model_cameras,
+)
+from relocfw.data.colmap_format import (
+    ColmapCamera,
+    ColmapImage,
+    read_images_binary,
+    read_images_text,
+)
 from relocfw.data.frames import Frame
 from relocfw.data.on_error import OnError
 
@@ -213,10 +223,16 @@ class ColmapDataset:
             binary is read when both are there, as COLMAP does).
         images: the image folder, relative to root; COLMAP's NAMEs are relative to it.
         on_error: "fail" or "skip" (bad entries left out and listed).
+        metric: True declares the model metric (aligned to metres, e.g. with
+            `colmap model_aligner`): reports then say metres and print no note.
 
     Attributes:
-        metric: False: COLMAP's scale is arbitrary, so errors are in model units.
-        units_note: one line saying so, for reports.
+        metric: False by default: COLMAP's scale is arbitrary, so errors are in
+            model units.
+        units_note: one line saying so, for reports; "" for a metric model.
+        cameras: the model's cameras (checked intrinsics) by CAMERA_ID; `camera(name)`
+            gives the one an image was taken with.
+        cameras_file: the cameras.bin or cameras.txt they were read from.
     """
 
     metric: bool = False
@@ -230,7 +246,13 @@ class ColmapDataset:
         model: str = "sparse/0",
         images: str = "images",
         on_error: str = "fail",
+        metric: bool = False,
     ) -> None:
+        if not isinstance(metric, bool):
+            raise ConfigError(f"dataset.metric must be true or false, got {metric!r}")
+        # Read by relocfw.report.units.unit_of: what every report calls the positions.
+        self.metric = metric
+        self.units_note = "" if metric else UNITS_NOTE
         if root is None or str(root) == "":
             raise ConfigError("dataset.root is not set: pass dataset.root=DIR")
         self.root = Path(root).expanduser()
@@ -246,7 +268,15 @@ class ColmapDataset:
         self.image_folder = self.root / images
         if not self.image_folder.is_dir():
             raise DataError(f"dataset.images: image folder not found: {self.image_folder}")
-        registered = read_model_images(self.model_file, self.on_error)
+        self.cameras_file = model_cameras_file(self.model_file)
+        self.cameras = read_model_cameras(self.cameras_file, self.on_error)
+        registered = images_with_cameras(
+            read_model_images(self.model_file, self.on_error),
+            self.cameras,
+            self.cameras_file,
+            self.on_error,
+        )
+        self._camera_ids = {image.name: image.camera_id for image in registered}
         chosen = self._splits(registered, {"train": train, "test": test})
         self._frames = {
             split: self._existing_frames([i for i in registered if i.name in chosen[split]])
@@ -293,3 +323,9 @@ class ColmapDataset:
         if split not in SPLITS:
             raise ConfigError(f"split must be 'train' or 'test', got {split!r}")
         return list(self._frames[split])
+
+    def camera(self, name: str) -> ColmapCamera:
+        """The camera (intrinsics) image `name` (a Frame's name) was taken with."""
+        if name not in self._camera_ids:
+            raise DataError(f"{name!r} is not an image registered in {self.model_file}")
+        return self.cameras[self._camera_ids[name]]

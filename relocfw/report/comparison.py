@@ -10,6 +10,7 @@ import numpy as np
 
 from relocfw.report.evaluation import MethodResult
 from relocfw.report.statistics import spearman
+from relocfw.report.units import METRES, PositionUnit
 
 AVERAGE = "average"
 
@@ -29,7 +30,7 @@ def error_decrease(reference: float, value: float) -> float:
 def median_errors(
     results: Mapping[str, Mapping[str, MethodResult]],
 ) -> dict[str, dict[str, tuple[float, float]]]:
-    """scene -> method -> (median position m, median orientation deg), plus an average row.
+    """scene -> method -> (median position error, median orientation deg), plus an average row.
 
     The average row is the mean over scenes of the per-scene medians, as in the
     paper's tables (not the median over all queries pooled).
@@ -56,14 +57,17 @@ def median_errors(
 
 
 def table_rows(
-    table: Mapping[str, Mapping[str, tuple[float, float]]], reference: str
+    table: Mapping[str, Mapping[str, tuple[float, float]]],
+    reference: str,
+    unit: PositionUnit = METRES,
 ) -> tuple[list[str], list[list[str]]]:
-    """Header and rows: each method's medians, then each other method's decrease."""
+    """Header and rows: each method's medians (position in `unit`, orientation in
+    degrees), then each other method's decrease."""
     methods = list(next(iter(table.values())))
     if reference not in methods:
         raise KeyError(f"compare.reference {reference!r} is not one of the methods {methods}")
     others = [m for m in methods if m != reference]
-    header = ["scene", *(f"{m} (m, deg)" for m in methods)]
+    header = ["scene", *(f"{m} ({unit.name}, deg)" for m in methods)]
     header += [f"{m} decrease vs {reference} (pos %, ori %)" for m in others]
     rows = []
     for scene, by_method in table.items():
@@ -144,9 +148,17 @@ def crop_seed_spread(by_seed: Mapping[int, MethodResult]) -> dict[str, object]:
     }
 
 
-def crop_seed_markdown(spreads: Mapping[str, Mapping[str, Mapping[str, object]]]) -> str:
+def crop_seed_markdown(
+    spreads: Mapping[str, Mapping[str, Mapping[str, object]]], unit: PositionUnit = METRES
+) -> str:
     """scene x method table of the medians' mean +- std (min - max) over crop seeds."""
-    header = ["scene", "method", "crop seeds", "median position (m)", "median orientation (deg)"]
+    header = [
+        "scene",
+        "method",
+        "crop seeds",
+        f"median position ({unit.name})",
+        "median orientation (deg)",
+    ]
     rows = []
     for scene, by_method in spreads.items():
         for method, spread in by_method.items():

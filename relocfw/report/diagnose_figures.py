@@ -20,6 +20,7 @@ from matplotlib.patches import Rectangle  # noqa: E402
 
 from relocfw.report.diagnosis import Picks, QueryWindows  # noqa: E402
 from relocfw.report.figures import save  # noqa: E402
+from relocfw.report.units import METRES, PositionUnit  # noqa: E402
 
 # One colour per choice, the same in every figure.
 COLOURS = {"centre": "tab:blue", "min_distance": "tab:red", "oracle_position": "tab:green"}
@@ -33,7 +34,11 @@ def evenly_spaced(count: int, wanted: int) -> list[int]:
 
 
 def distance_vs_error(
-    queries: Sequence[QueryWindows], picks: Sequence[Picks], path: Path, title: str = ""
+    queries: Sequence[QueryWindows],
+    picks: Sequence[Picks],
+    path: Path,
+    title: str = "",
+    unit: PositionUnit = METRES,
 ) -> Path:
     """Every window's map distance against its position and orientation error.
 
@@ -42,7 +47,7 @@ def distance_vs_error(
     """
     figure, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     for axis, kind, label in (
-        (axes[0], "position_errors", "position error (m)"),
+        (axes[0], "position_errors", f"position error ({unit.name})"),
         (axes[1], "orientation_errors", "orientation error (deg)"),
     ):
         distances = np.concatenate([q.distances for q in queries])
@@ -71,6 +76,7 @@ def offset_curves(
     which: Sequence[int],
     path: Path,
     title: str = "",
+    unit: PositionUnit = METRES,
 ) -> Path:
     """Distance (left axis) and position error (right axis) over the crop offset."""
     figure, axes = plt.subplots(len(which), 1, figsize=(8, 2.6 * len(which)), squeeze=False)
@@ -81,7 +87,7 @@ def offset_curves(
         axis.set_ylabel("map distance")
         error_axis = axis.twinx()
         error_axis.plot(offsets, query.position_errors, color="tab:purple", linewidth=1.2)
-        error_axis.set_ylabel("position error (m)", color="tab:purple")
+        error_axis.set_ylabel(f"position error ({unit.name})", color="tab:purple")
         for name, text in (
             ("centre", "centre"),
             ("min_distance", "min distance"),
@@ -94,7 +100,7 @@ def offset_curves(
                 color=COLOURS[name],
                 linestyle="--",
                 linewidth=1.2,
-                label=f"{text} (offset {offset}, {error:.3f} m)",
+                label=f"{text} (offset {offset}, {error:.3f} {unit.name})",
             )
         axis.set_title(query.frame, fontsize=9)
         axis.legend(fontsize=7, loc="upper left")
@@ -126,6 +132,7 @@ def crops_on_images(
     which: Sequence[int],
     path: Path,
     title: str = "",
+    unit: PositionUnit = METRES,
 ) -> Path:
     """The paper's Table 3 view: a query with its centre and min-distance crops.
 
@@ -143,7 +150,7 @@ def crops_on_images(
             if not np.allclose(query.views[entry], query.crops[entry]):
                 outline(axis, query.views[entry], COLOURS[name], dashed=True)
             lines.append(
-                f"{text}: {query.position_errors[entry]:.3f} m, "
+                f"{text}: {query.position_errors[entry]:.3f} {unit.name}, "
                 f"{query.orientation_errors[entry]:.2f}°"
             )
         axis.set_title(f"{query.frame}\n" + "\n".join(lines), fontsize=8)

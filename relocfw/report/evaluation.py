@@ -16,6 +16,7 @@ from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
 from relocfw.report.metrics import accuracy_metrics, failed_as_infinite
 from relocfw.report.uncertainty import uncertainty_quality
+from relocfw.report.units import METRES, PositionUnit, relabel_key
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,9 @@ def constant_answer(method: str, pose: Pose, frames: Sequence[Frame]) -> MethodR
 
 def summarise(result: MethodResult) -> dict[str, float | int | str]:
     """The field's accuracy metrics (relocfw.report.metrics.accuracy_metrics) and costs.
+
+    Keys name metres; a writer renames them for a non-metric dataset
+    (relocfw.report.units.relabel_row).
 
     Time is reported as the median (robust to a slow moment of the machine) and the
     mean over the queries of the timed (warmed-up) run. A failed query counts as
@@ -175,11 +179,16 @@ def answer_cells(answer: Localization) -> list[str | int]:
     ]
 
 
-def per_image_csv(results: Sequence[MethodResult]) -> str:
-    """One row per method and query image, everything needed to redo the statistics."""
+def per_image_csv(results: Sequence[MethodResult], unit: PositionUnit = METRES) -> str:
+    """One row per method and query image, everything needed to redo the statistics.
+
+    The positions' unit is in the column names (`position_error_m`, or
+    `position_error_units` for a non-metric dataset), so the file needs no note.
+    """
     stream = io.StringIO()
     writer = csv.writer(stream)
-    writer.writerow(CSV_COLUMNS)
+    # Per-query columns carry no metre band, so relabelling never drops one.
+    writer.writerow([relabel_key(column, unit) for column in CSV_COLUMNS])
     for result in results:
         rows = zip(
             result.frames,

@@ -15,6 +15,7 @@ from sklearn.manifold import TSNE  # noqa: E402
 from relocfw.data.frames import Frame, positions_of  # noqa: E402
 from relocfw.model.checkpoints import atomic_write  # noqa: E402
 from relocfw.report.evaluation import MethodResult  # noqa: E402
+from relocfw.report.units import METRES, PositionUnit  # noqa: E402
 
 
 def save(figure: plt.Figure, path: Path) -> Path:
@@ -25,21 +26,31 @@ def save(figure: plt.Figure, path: Path) -> Path:
 
 
 HISTOGRAM_KINDS = {
-    # kind: (axis label, good threshold, bad threshold, unit, minimum axis extent)
-    "position": ("position error (m)", 0.5, 1.0, " m", 1.0),
-    "orientation": ("orientation error (deg)", 15.0, 20.0, "°", 20.0),
+    # kind: (good threshold, bad threshold, minimum axis extent); metres for position
+    "position": (0.5, 1.0, 1.0),
+    "orientation": (15.0, 20.0, 20.0),
 }
 
 
 def error_histogram(
-    results: Sequence[MethodResult], kind: str, path: Path, title: str = ""
+    results: Sequence[MethodResult],
+    kind: str,
+    path: Path,
+    title: str = "",
+    unit: PositionUnit = METRES,
 ) -> Path:
     """Figure 7: histogram of position or orientation errors, methods overlaid.
 
     The legend gives each method's share under the paper's good threshold
-    (0.5 m / 15 deg) and over its bad one (1.0 m / 20 deg).
+    (0.5 m / 15 deg) and over its bad one (1.0 m / 20 deg). Positions in another
+    `unit` than metres get no thresholds: 0.5 of an arbitrary unit means nothing.
     """
-    label, good, bad, unit, extent = HISTOGRAM_KINDS[kind]
+    good, bad, extent = HISTOGRAM_KINDS[kind]
+    if kind == "orientation":
+        label, suffix = "orientation error (deg)", "°"
+    else:
+        label, suffix = f"position error ({unit.name})", f" {unit.name}"
+    thresholds = kind == "orientation" or unit.metric
     errors = [
         r.position_errors() if kind == "position" else r.orientation_errors() for r in results
     ]
@@ -48,20 +59,23 @@ def error_histogram(
     bins = np.linspace(0, top, 30)
     figure, axis = plt.subplots(figsize=(7, 4.5))
     for result, error in zip(results, errors, strict=True):
-        under, over = np.mean(error < good), np.mean(error > bad)
-        shares = f"{under:.0%} < {good:g}{unit}, {over:.0%} > {bad:g}{unit}"
+        parts = []
+        if thresholds:
+            under, over = np.mean(error < good), np.mean(error > bad)
+            parts.append(f"{under:.0%} < {good:g}{suffix}, {over:.0%} > {bad:g}{suffix}")
         failed = int(np.sum(~np.isfinite(error)))
         if failed:
-            shares += f", {failed} failed (in the last bin)"
+            parts.append(f"{failed} failed (in the last bin)")
+        shares = ", ".join(parts)
         # A failed query (inf) is drawn in the last bin, never left out.
         axis.hist(
             np.minimum(error, top),
             bins=bins,
             histtype="step",
             linewidth=1.8,
-            label=f"{result.method}: {shares}",
+            label=f"{result.method}: {shares}" if shares else result.method,
         )
-    for value in (good, bad):
+    for value in (good, bad) if thresholds else ():
         axis.axvline(value, color="grey", linestyle=":", linewidth=1)
     axis.set_xlabel(label)
     axis.set_ylabel("queries")
@@ -70,7 +84,9 @@ def error_histogram(
     return save(figure, path)
 
 
-def error_curves(results: Sequence[MethodResult], path: Path, title: str = "") -> Path:
+def error_curves(
+    results: Sequence[MethodResult], path: Path, title: str = "", unit: PositionUnit = METRES
+) -> Path:
     """Figure 8: position and orientation error of every test image, in order."""
     figure, (top, bottom) = plt.subplots(2, 1, figsize=(12, 6), sharex=True)
     for axis, kind in ((top, "position"), (bottom, "orientation")):
@@ -85,7 +101,7 @@ def error_curves(results: Sequence[MethodResult], path: Path, title: str = "") -
             failed = np.flatnonzero(~np.isfinite(error))
             if len(failed):
                 axis.plot(failed, np.full(len(failed), ceiling), "x", color=line.get_color())
-    top.set_ylabel("position error (m)")
+    top.set_ylabel(f"position error ({unit.name})")
     bottom.set_ylabel("orientation error (deg)")
     bottom.set_xlabel("test image (trajectory order)")
     top.legend(fontsize=7)
@@ -94,7 +110,11 @@ def error_curves(results: Sequence[MethodResult], path: Path, title: str = "") -
 
 
 def trajectory_top_down(
-    train: Sequence[Frame], results: Sequence[MethodResult], path: Path, title: str = ""
+    train: Sequence[Frame],
+    results: Sequence[MethodResult],
+    path: Path,
+    title: str = "",
+    unit: PositionUnit = METRES,
 ) -> Path:
     """Top-down (x, y) view: training path, test ground truth and each method's estimates."""
     figure, axis = plt.subplots(figsize=(8, 7))
@@ -106,8 +126,8 @@ def trajectory_top_down(
         estimates = np.stack([a.pose.position for a in result.answers])[:, :2]
         axis.plot(*estimates.T, "o", markersize=3, alpha=0.8, label=result.method)
     axis.set_aspect("equal")
-    axis.set_xlabel("x (m)")
-    axis.set_ylabel("y (m)")
+    axis.set_xlabel(f"x ({unit.name})")
+    axis.set_ylabel(f"y ({unit.name})")
     axis.legend(fontsize=7)
     axis.set_title(f"Trajectory, top-down {title}".strip())
     return save(figure, path)
@@ -145,7 +165,11 @@ def tsne_of_map(
 
 
 def uncertainty_against_error(
-    result: MethodResult, quality: dict, path: Path, title: str = ""
+    result: MethodResult,
+    quality: dict,
+    path: Path,
+    title: str = "",
+    unit: PositionUnit = METRES,
 ) -> Path:
     """The authors' view, one point per query: spread against error (position and
     orientation), and each kind's sparsification curve against its oracle."""
@@ -155,13 +179,13 @@ def uncertainty_against_error(
         "orientation": np.array([a.orientation_spread_deg for a in result.answers]),
     }
     errors = {"position": result.position_errors(), "orientation": result.orientation_errors()}
-    for row, (kind, unit) in enumerate((("position", "m"), ("orientation", "deg"))):
+    for row, (kind, name) in enumerate((("position", unit.name), ("orientation", "deg"))):
         measures = quality[kind]
         scatter, curves = axes[row]
         finite = np.isfinite(errors[kind])
         scatter.scatter(spreads[kind][finite], errors[kind][finite], s=10)
-        scatter.set_xlabel(f"{kind} spread ({unit})")
-        scatter.set_ylabel(f"{kind} error ({unit})")
+        scatter.set_xlabel(f"{kind} spread ({name})")
+        scatter.set_ylabel(f"{kind} error ({name})")
         scatter.set_title(f"Spearman {measures['spearman_spread_error']:.2f}", fontsize=9)
         sparsification = measures["sparsification"]
         curves.plot(
@@ -169,17 +193,20 @@ def uncertainty_against_error(
         )
         curves.plot(sparsification["fractions"], sparsification["oracle"], label="by true error")
         curves.set_xlabel("fraction of queries removed (most uncertain first)")
-        curves.set_ylabel(f"median {kind} error of the rest ({unit})")
-        curves.set_title(f"AUSE {measures['ause']:.3g} {unit}", fontsize=9)
+        curves.set_ylabel(f"median {kind} error of the rest ({name})")
+        curves.set_title(f"AUSE {measures['ause']:.3g} {name}", fontsize=9)
         curves.legend(fontsize=8)
     figure.suptitle(f"{result.method}: uncertainty against error {title}".strip())
     figure.tight_layout()
     return save(figure, path)
 
 
-def training_curve(history: dict[str, list[float]], path: Path, title: str = "") -> Path:
+def training_curve(
+    history: dict[str, list[float]], path: Path, title: str = "", unit: PositionUnit = METRES
+) -> Path:
     """Per-step losses of a training run: the total and each head's (log scale), the
-    main head's errors, and the learning rate with any learned loss weights."""
+    main head's errors (positions in the training poses' `unit`), and the learning
+    rate with any learned loss weights."""
     figure, (losses, errors, schedule) = plt.subplots(1, 3, figsize=(15, 4))
     steps = np.arange(1, len(history.get("loss", [])) + 1)
     for name in ("loss", "main", "aux1", "aux2"):
@@ -189,7 +216,9 @@ def training_curve(history: dict[str, list[float]], path: Path, title: str = "")
     losses.set_title("loss (total and weighted per head)", fontsize=9)
     losses.legend(fontsize=8)
     if history.get("main_position_m"):
-        errors.plot(steps, history["main_position_m"], label="position (m)", linewidth=0.8)
+        errors.plot(
+            steps, history["main_position_m"], label=f"position ({unit.name})", linewidth=0.8
+        )
         errors.plot(steps, history["main_orientation"], label="||q - q^||", linewidth=0.8)
         errors.legend(fontsize=8)
     errors.set_title("main head's batch errors", fontsize=9)

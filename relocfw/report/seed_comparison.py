@@ -132,14 +132,12 @@ def seed_rows(
     return header, rows
 
 
-def seed_markdown(
-    table: Mapping[str, Mapping[str, Mapping[str, object]]], reference: str, seeds: Sequence[int]
-) -> str:
-    """The seed table in Markdown, with a note on how to read it."""
-    header, rows = seed_rows(table, reference)
-    note = (
+def seed_footnote(seeds: Sequence[int], bands: bool = True) -> str:
+    """How to read the seed table; `bands=False` for a run without metre bands."""
+    banded = " bands are the mean share of queries within both limits." if bands else ""
+    return (
         f"\nTraining seeds {', '.join(str(s) for s in seeds)}: medians are mean +- std over "
-        "seeds; bands are the mean share of queries within both limits. Paired tests use "
+        f"seeds;{banded} Paired tests use "
         "the same queries: the bootstrap resamples queries (2000 times, the same queries "
         "for both methods on every seed), Wilcoxon tests each query's median over seeds of "
         "its per-seed difference (method minus reference, same seed); p values are not "
@@ -147,4 +145,10 @@ def seed_markdown(
         "where a method's median is infinite on one seed and the reference's on another, "
         "the difference is undefined and so is the verdict.\n"
     )
-    return as_markdown(header, rows) + note
+
+
+def seed_markdown(
+    table: Mapping[str, Mapping[str, Mapping[str, object]]], reference: str, seeds: Sequence[int]
+) -> str:
+    """The seed table in Markdown, with a note on how to read it."""
+    return as_markdown(*seed_rows(table, reference)) + seed_footnote(seeds)

@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from relocfw.report.metrics import RECALL_BANDS, band_key, band_title
+from relocfw.report.units import METRES, PositionUnit, relabel_key, relabel_title
 
 COLUMNS = (
     ("median_position_m", "med pos (m)", "{:.3f}"),
@@ -26,14 +27,29 @@ COLUMNS = (
 )
 
 
-def format_table(summaries: Sequence[dict[str, Any]]) -> str:
+def columns_in(unit: PositionUnit) -> list[tuple[str, str, str]]:
+    """COLUMNS as `unit` names them: for a non-metric run, no metre band or share."""
+    return [
+        (key, relabel_title(title, unit) or title, fmt)
+        for key, title, fmt in COLUMNS
+        if relabel_key(key, unit) is not None
+    ]
+
+
+def format_table(summaries: Sequence[dict[str, Any]], unit: PositionUnit = METRES) -> str:
     """Plain-text table, one row per method; medians, means and shares over all queries
-    (a failed query counts as infinitely wrong)."""
-    header = ["method", *(title for _, title, _ in COLUMNS)]
+    (a failed query counts as infinitely wrong).
+
+    Args:
+        summaries: `relocfw.report.evaluation.summarise` rows (metre-named keys).
+        unit: the positions' unit, for the titles and which shares mean something.
+    """
+    columns = columns_in(unit)
+    header = ["method", *(title for _, title, _ in columns)]
     rows = []
     for summary in summaries:
         cells = [str(summary["method"])]
-        for key, _, fmt in COLUMNS:
+        for key, _, fmt in columns:
             value = summary[key]
             if key.endswith("_seconds_per_query"):
                 value *= 1000.0
