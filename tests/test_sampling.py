@@ -20,6 +20,10 @@ from relocfw.plugins.posenet import PoseNet
 class SamplesSeen(PoseNet):
     """Records how many dropout samples each forward pass ran with, and its batch."""
 
+    # Declared, so the pipeline does not measure it with passes of its own (which
+    # would be among the calls recorded); tests/test_sampling_cost.py measures it.
+    sample_share = 0.25
+
     def __init__(self, variant: str = "kendall", samples: int = 8, crop_scale: float = 1.5):
         torch.manual_seed(0)
         super().__init__(
@@ -114,8 +118,10 @@ def test_crop_sampling_with_dropout_gives_each_window_one_mask(scene_images):
     relocalizer = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop(), crop_samples=7)
     relocalizer.fit(train)
     backbone.calls.clear()
-    relocalizer.localize(test[0])
+    answer = relocalizer.localize(test[0])
     assert backbone.calls == [(0, 1), (1, 7)]
+    # The centre window, then 7 windows that each rerun a quarter of the net once.
+    assert answer.network_passes == pytest.approx(1 + 7 * (1 + 0.25))
 
 
 def test_random_windows_stay_inside_the_chosen_crop():

@@ -3,7 +3,6 @@ the only modules that see a DictConfig."""
 
 from __future__ import annotations
 
-import importlib
 import sys
 from pathlib import Path
 
@@ -36,7 +35,8 @@ from relocfw.core.version import VERSION
 from relocfw.model.distributed import World
 from relocfw.model.model_file import load_model, save_model
 from relocfw.model.onnx_backbone import check_onnx_scoring, onnx_relocalizer
-from relocfw.model.onnx_export import export_onnx, onnx_path, require
+from relocfw.model.onnx_export import export_destination, export_onnx, onnx_path, require
+from relocfw.report.units import unit_of
 
 TASKS = ("relocalize", "train", "compare", "localize", "plugins", "diagnose", "export")
 BACKENDS = ("torch", "onnx")  # what runs the network of task=localize
@@ -71,6 +71,7 @@ def model_file(cfg: DictConfig) -> Path:
 
 def run_export(cfg: DictConfig) -> None:
     model = model_file(cfg)
+    out = export_destination(model, cfg.export.out)  # refused before any work
     require("onnx", "task=export")
     require("onnxruntime", "task=export")
     relocalizer = load_model(model, "cpu")
@@ -80,7 +81,6 @@ def run_export(cfg: DictConfig) -> None:
             f"note: the model samples backbone.mc_samples={samples} Monte Carlo dropout "
             "masks; the ONNX network is the dropout-free one (mc_samples=0)"
         )
-    out = onnx_path(model, cfg.export.out)
     differences = export_onnx(relocalizer.backbone, out)
     largest = max(differences.values())
     size = relocalizer.backbone.input_size
@@ -144,27 +144,6 @@ def run(cfg: DictConfig) -> None:
         run_task(cfg, device, world)
     finally:
         leave_torchrun(world)
-    note = units_note(cfg)
-    if note and cfg.task in ("relocalize", "compare", "diagnose"):
-        relocalize_task.note_units(Path(HydraConfig.get().runtime.output_dir), note)
-        print(f"note: {note}")
-
-
-def units_note(cfg: DictConfig) -> str:
-    """What reports must say when the dataset's positions are not in metres.
-
-    A dataset class says so with `metric = False` and a `units_note` (COLMAP models
-    have no scale of their own); "" for metric datasets.
-    """
-    target = str(cfg.dataset.get("_target_", ""))
-    module, _, name = target.rpartition(".")
-    try:
-        dataset_class = getattr(importlib.import_module(module), name)
-    except (ImportError, AttributeError, ValueError):
-        return ""
-    if getattr(dataset_class, "metric", True):
-        return ""
-    return str(getattr(dataset_class, "units_note", "positions are not in metres"))
 
 
 def run_task(cfg: DictConfig, device: torch.device, world: World | None) -> None:
@@ -199,7 +178,13 @@ def run_task(cfg: DictConfig, device: torch.device, world: World | None) -> None
     if cfg.task == "relocalize":
         method.index.check_map_size(len(train[0]))
     checkpoint = prepare_model(
-        cfg, method, train, device, world, curve=run_dir / "training_curve.png"
+        cfg,
+        method,
+        train,
+        device,
+        world,
+        curve=run_dir / "training_curve.png",
+        unit=unit_of(dataset),
     )
     if cfg.task == "train":
         relocalize_task.write_skipped(dataset, run_dir)
@@ -216,6 +201,7 @@ def run_task(cfg: DictConfig, device: torch.device, world: World | None) -> None
         baselines=list(cfg.baselines),
         centre_label=centre_label(cfg, choices),
         quiet=quiet,
+        unit=unit_of(dataset),
     )
     metadata = {
         "method": method.label,
@@ -239,12 +225,17 @@ def hydra_main(cfg: DictConfig) -> None:
 
 
 def main() -> None:
-    """Console-script entry point."""
-    install_plugin_discovery()
-    clashes = conflicts(discover_options())
-    for line in clashes:
-        print(f"warning: {line}", file=sys.stderr)
-    hydra_main()
+    """Console-script entry point. Ctrl-C ends it with one line and exit status 130
+    (128 + SIGINT, as a shell reports it), not a traceback."""
+    try:
+        install_plugin_discovery()
+        clashes = conflicts(discover_options())
+        for line in clashes:
+            print(f"warning: {line}", file=sys.stderr)
+        hydra_main()
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        sys.exit(130)
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
@@ -28,6 +29,53 @@ def read_rgb(path: Path) -> np.ndarray:
     if image is None:
         raise DataError(f"cannot decode image (corrupt or not an image): {path}")
     return np.ascontiguousarray(image[:, :, ::-1])
+
+
+def conversion_hint(dtype: np.dtype) -> str:
+    """How to make uint8 pixels of what a user most often has instead ("" if unknown)."""
+    if dtype.kind == "f":
+        return " (a float image in [0, 1]: (image * 255).round().astype(np.uint8))"
+    if dtype == np.uint16:
+        return " (a 16-bit image: (image >> 8).astype(np.uint8))"
+    return ""
+
+
+def check_rgb_image(image: object, name: str = "image") -> np.ndarray:
+    """`image` itself if it is an H x W x 3 uint8 RGB numpy array; DataError if not.
+
+    The pipeline takes uint8 pixels only: a float image in [0, 1] would be divided by
+    255 a second time and a uint16 image read as if it were 8-bit, both silently, and a
+    greyscale or RGBA array would fail deep inside torch. Checking costs no copy.
+
+    Args:
+        image: what the caller passed.
+        name: how the message names it, e.g. "image 3" for the fourth of a list.
+
+    Raises:
+        DataError: naming the dtype or shape found and what to do about it.
+    """
+    if not isinstance(image, np.ndarray):
+        raise DataError(
+            f"{name} is a {type(image).__name__}; relocfw takes numpy arrays, "
+            "H x W x 3 uint8 RGB (relocfw.core.imaging.read_rgb reads a file that way)"
+        )
+    if image.dtype != np.uint8:
+        raise DataError(
+            f"{name} has dtype {image.dtype}; relocfw takes H x W x 3 uint8 RGB images"
+            + conversion_hint(image.dtype)
+        )
+    if image.ndim != 3 or image.shape[2] != 3 or 0 in image.shape:
+        raise DataError(
+            f"{name} has shape {image.shape}; relocfw takes H x W x 3 uint8 RGB images "
+            "(greyscale: np.repeat(image[..., None], 3, axis=2); RGBA: image[..., :3])"
+        )
+    return image
+
+
+def check_rgb_images(images: Sequence[object]) -> None:
+    """check_rgb_image on every image of a list, naming the first bad one by index."""
+    for number, image in enumerate(images):
+        check_rgb_image(image, f"image {number}")
 
 
 class Strip:

@@ -58,6 +58,11 @@ class Backbone(torch.nn.Module, ABC):
     # convolutions and poolings about 1.5x faster for one image (benchmarks/). A
     # backbone whose forward needs contiguous NCHW tensors (e.g. `.view`) sets False.
     channels_last: bool = True
+    # The share of one dropout-free forward pass's work that each Monte Carlo sample
+    # reruns (the layers from the first dropout up), for `network_passes`. None: measured
+    # from the multiply-adds of the backbone's own passes (relocfw.core.sampling.
+    # sample_share); declare it where most of the work is not in Conv / Linear layers.
+    sample_share: float | None = None
     # True when the weights start from training elsewhere (e.g. ImageNet): settings
     # that only fine-tune (preset=paper's lr 1e-5) refuse a backbone without it.
     pretrained: bool = False

@@ -12,21 +12,34 @@ torch gets a team of workers of its own, and idle teams spin: passes made from 1
 search threads left 16 teams fighting for 2 cores and made batching slower than one
 query at a time. What a search computes between its calls (the GA's breeding) runs
 in its own thread.
+
+An interrupt (Ctrl-C, or any BaseException that is not an Exception) on the serving
+thread is never handed to the members: `serve` cancels them, so each waiting search
+ends at once with `Cancelled`, and re-raises the interrupt to its caller.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
+
+
+class Cancelled(BaseException):
+    """Raised in a member whose lockstep stopped serving (the serving thread was
+    interrupted). A BaseException, like KeyboardInterrupt, so that a search's own
+    `except Exception` cannot swallow it and ask again."""
 
 
 class Lockstep:
     """Gathers one request from each running member, answers them all in one call.
 
     Members (search threads) call `ask` or `call` and `leave`; one thread, the one that
-    owns the network, calls `serve` until every member has left.
+    owns the network, calls `serve` until every member has left. An ordinary error of
+    a merged call goes to the members that asked; an interrupt stops `serve` and
+    cancels every member (see the module's docstring).
 
     Args:
         members: how many threads take part; each calls `leave` when it is done.
@@ -41,6 +54,7 @@ class Lockstep:
         self._pending: dict[int, Any] = {}
         self._solo: deque[tuple[int, Callable[[], Any]]] = deque()
         self._answers: dict[int, Any] = {}
+        self._cancelled = False
         self._run_together = run_together
         self.calls = 0  # merged calls made: what batching saved is visible
 
@@ -64,8 +78,25 @@ class Lockstep:
             self._running -= 1
             self._condition.notify_all()
 
+    def cancel(self) -> None:
+        """Every member waiting for an answer, or asking later, gets `Cancelled`."""
+        with self._condition:
+            self._cancelled = True
+            self._condition.notify_all()
+
     def serve(self) -> None:
-        """Answer the members' calls on this thread until every member has left."""
+        """Answer the members' calls on this thread until every member has left.
+
+        An interrupt (e.g. KeyboardInterrupt, while waiting or during a call) cancels
+        the members and is re-raised here at once.
+        """
+        try:
+            self._serve_until_all_left()
+        except BaseException:
+            self.cancel()
+            raise
+
+    def _serve_until_all_left(self) -> None:
         while True:
             with self._condition:
                 while not (self._solo or self._merge_ready() or self._running == 0):
@@ -82,7 +113,8 @@ class Lockstep:
             try:
                 solo = requests is None
                 answers = [work()] if solo else list(self._run_together(list(requests)))
-            except BaseException as error:  # noqa: BLE001 - handed to every asker, re-raised there
+            except Exception as error:  # noqa: BLE001 - handed to every asker, re-raised there
+                # (an interrupt is not an Exception: it leaves serve, see above)
                 answers = [_Failed(error)] * len(members)
             with self._condition:
                 self._answers.update(zip(members, answers, strict=True))
@@ -94,8 +126,10 @@ class Lockstep:
 
     def _answer_of(self, member: int) -> Any:
         with self._condition:
-            while member not in self._answers:
+            while member not in self._answers and not self._cancelled:
                 self._condition.wait()
+            if self._cancelled:
+                raise Cancelled("the serving thread stopped (interrupted)")
             answer = self._answers.pop(member)
         if isinstance(answer, _Failed):
             raise answer.error
@@ -105,3 +139,24 @@ class Lockstep:
 class _Failed:
     def __init__(self, error: BaseException) -> None:
         self.error = error
+
+
+# How long an interrupted group waits for its search threads to end: a cancelled
+# search ends at its next network call, within milliseconds unless it computes long
+# between calls; a thread still running after this is a daemon and is left behind.
+INTERRUPTED_JOIN_SECONDS = 2.0
+
+
+def join_within(threads: Sequence[threading.Thread], seconds: float) -> None:
+    """Join `threads`, waiting at most `seconds` for all of them together."""
+    deadline = time.monotonic() + seconds
+    for thread in threads:
+        thread.join(max(0.0, deadline - time.monotonic()))
+
+
+def first_failure(failures: dict[int, BaseException]) -> BaseException:
+    """The error a group raises: an interrupt (KeyboardInterrupt, SystemExit: not an
+    Exception) wins over any member's ordinary error, else the first query's error,
+    whatever the timing."""
+    interrupts = [m for m, error in failures.items() if not isinstance(error, Exception)]
+    return failures[min(interrupts or failures)]

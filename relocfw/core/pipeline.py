@@ -15,7 +15,7 @@ from threadpoolctl import ThreadpoolController
 
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import mean_quaternion
-from relocfw.core.imaging import Strip, to_network_input
+from relocfw.core.imaging import Strip, check_rgb_image, check_rgb_images, to_network_input
 from relocfw.core.interfaces import (
     Backbone,
     CropSearch,
@@ -23,7 +23,7 @@ from relocfw.core.interfaces import (
     crop_at,
     crop_side_and_span,
 )
-from relocfw.core.lockstep import Lockstep
+from relocfw.core.lockstep import INTERRUPTED_JOIN_SECONDS, Lockstep, first_failure, join_within
 from relocfw.core.network_answers import NetworkAnswers, as_numpy
 from relocfw.core.progress import Progress
 from relocfw.core.query_run import QueryRun
@@ -33,6 +33,7 @@ from relocfw.core.sampling import (
     monte_carlo,
     query_streams,
     random_windows,
+    sample_share,
     seeded_torch,
 )
 from relocfw.core.values import Crop, Localization, Pose
@@ -207,6 +208,7 @@ class Relocalizer:
         )
         self._threadpools: ThreadpoolController | None = None  # found on first query
         self._cells: int | None = None  # see _window_cells
+        self._sample_share: float | None = None  # see _sampled_passes
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
 
@@ -266,7 +268,12 @@ class Relocalizer:
         return NetworkAnswers(*(np.concatenate(column) for column in zip(*parts, strict=True)))
 
     def describe(self, images: Sequence[np.ndarray], quiet: bool = True) -> np.ndarray:
-        """[N, D] descriptors of the centre crops: what the map is built from."""
+        """[N, D] descriptors of the centre crops: what the map is built from.
+
+        Raises:
+            DataError: an image is not H x W x 3 uint8 RGB (naming its index).
+        """
+        check_rgb_images(images)
         size = self.backbone.input_size
         progress = Progress(len(images), "describing map images", quiet=quiet)
         features = []
@@ -291,6 +298,10 @@ class Relocalizer:
 
         Returns:
             The [N, D] training descriptors.
+
+        Raises:
+            DataError: an image is not H x W x 3 uint8 RGB (naming its index), or
+                retrieval lacks poses.
         """
         if self.retrieval_k > 0 and (poses is None or len(poses) != len(images)):
             raise DataError("retrieval needs the pose of every map image: fit(images, poses)")
@@ -371,7 +382,12 @@ class Relocalizer:
         return self.backbone.describe_pooled(maps.pooled(corners)).double().cpu().numpy()
 
     def localize(self, image: np.ndarray) -> Localization:
-        """Pose of one RGB image (H x W x 3 uint8) through the crop search."""
+        """Pose of one RGB image (H x W x 3 uint8) through the crop search.
+
+        Raises:
+            DataError: the image is of another type or shape (e.g. float, RGBA).
+        """
+        check_rgb_image(image)
         run = QueryRun(self, image, self._score_corners)
         run.choose()
         return run.answer()
@@ -387,7 +403,12 @@ class Relocalizer:
         the centre crops of a group go through in one batch, the GA's generations of
         the whole group together. A query's `seconds` is its group's time shared
         equally among the group's queries.
+
+        Raises:
+            DataError: an image is not H x W x 3 uint8 RGB (naming its index), before
+                any query runs.
         """
+        check_rgb_images(images)
         if queries_at_once is None:
             queries_at_once = self.queries_at_once
         if int(queries_at_once) != queries_at_once or queries_at_once < 1:
@@ -419,7 +440,8 @@ class Relocalizer:
             finally:
                 lockstep.leave(member)
 
-        # Daemons: an interrupted run (Ctrl-C while joining) must not hang on them.
+        # Daemons: a thread that outlives the short join after an interrupt must not
+        # keep the process alive.
         threads = [
             threading.Thread(target=search, args=(m,), daemon=True) for m in range(len(runs))
         ]
@@ -432,11 +454,17 @@ class Relocalizer:
             # Members that never started must not be waited for by those that did.
             for member in range(started_threads, len(runs)):
                 lockstep.leave(member)
-            lockstep.serve()  # every network pass on this thread (relocfw.core.lockstep)
+            try:
+                lockstep.serve()  # every network pass on this thread (relocfw.core.lockstep)
+            except BaseException:
+                # Interrupted (Ctrl-C): serve has cancelled the members; their threads
+                # end at their next network call, so give them a moment, then raise.
+                join_within(threads[:started_threads], INTERRUPTED_JOIN_SECONDS)
+                raise
             for thread in threads[:started_threads]:
                 thread.join()
         if failures:
-            raise failures[min(failures)]  # the first query's error, whatever the timing
+            raise first_failure(failures)
         # Sampling (dropout masks, seeded per query) runs here, one query at a time:
         # torch's random stream and the backbone's sample count are not per thread.
         answers = [run.answer() for run in runs]
@@ -466,7 +494,7 @@ class Relocalizer:
 
     def _sampled_answer(
         self, strip: Strip, crop: Crop, plain: NetworkAnswers, fingerprint: int
-    ) -> tuple[NetworkAnswers, int]:
+    ) -> tuple[NetworkAnswers, float]:
         """The chosen crop's answer from its samples, and the extra network passes.
 
         `plain` is the crop's dropout-free answer: its descriptor, the one the index
@@ -478,11 +506,13 @@ class Relocalizer:
             if self.crop_samples == 0:
                 window = strip.cut(strip.window(crop))[None]
                 sampled = self._forward(window, masks)
-                return NetworkAnswers(*(column[0] for column in sampled)), 1
+                answer = NetworkAnswers(*(column[0] for column in sampled))
+                return answer, self._sampled_passes(1, masks)
             corners = random_windows(strip, crop, self.crop_samples, windows_rng)
             windows = torch.stack([strip.cut(c) for c in corners])
             # With dropout on, one mask per window: every sample is a new crop and mask.
-            samples = self._forward(windows, 1 if masks > 0 else 0)
+            masks = 1 if masks > 0 else 0
+            samples = self._forward(windows, masks)
         position, quaternion, position_spread, orientation_spread = combine_samples(
             samples.positions, samples.quaternions
         )
@@ -493,7 +523,19 @@ class Relocalizer:
             np.float64(position_spread),
             np.float64(orientation_spread),
         )
-        return answer, len(corners)
+        return answer, self._sampled_passes(len(corners), masks)
+
+    def _sampled_passes(self, windows: int, masks: int) -> float:
+        """Network passes of sampling `windows` windows with `masks` dropout masks each,
+        in whole-network passes: each window's pass counts one, each mask the share of
+        a pass that a sample reruns (relocfw.core.sampling.sample_share: 0.0014 for
+        PoseNet's kendall variant, 0.60 for "all"), so 40 kendall samples of one
+        window cost 1.06 passes and 40 of "all" 25."""
+        if masks == 0:
+            return float(windows)
+        if self._sample_share is None:  # measured once, in a random stream of its own
+            self._sample_share = sample_share(self.backbone, self.device)
+        return windows * (1.0 + masks * self._sample_share)
 
     @torch.inference_mode()
     def score_windows(self, image: np.ndarray) -> WindowScores:
@@ -505,7 +547,11 @@ class Relocalizer:
         is what `localize` answers were that crop chosen (retrieval included). Offsets
         that round to the same window share one network pass; windows go through the
         network `batch_size` at a time, so memory stays flat however long the image.
+
+        Raises:
+            DataError: the image is not H x W x 3 uint8 RGB.
         """
+        check_rgb_image(image)
         strip = Strip(image, self.backbone.input_size, self.crop_scale)
         _, span = crop_side_and_span(strip.width, strip.height)
         crops = tuple(crop_at(offset, strip.width, strip.height) for offset in range(span + 1))

@@ -137,14 +137,15 @@ class QueryRun:
         relocalizer = self.relocalizer
         corner = self.strip.window(self.chosen)
         distance, answer = self.results[corner]
-        sampled_passes = 0
+        sampled_passes = 0.0
         if relocalizer.crop_samples > 0 or configured_samples(relocalizer.backbone) > 0:
             answer, sampled_passes = relocalizer._sampled_answer(
                 self.strip, self.chosen, answer, self.query_seed
             )
         pose = relocalizer._answer_pose(answer)
         # Cost in whole-network passes: each plain window is one; the strip pass costs
-        # its area over a window's (the trunk dominates the network's work).
+        # its area over a window's (the trunk dominates the network's work); sampling
+        # adds what its samples rerun (Relocalizer._sampled_passes).
         side = relocalizer.backbone.input_size
         strip_passes = self.strip.pixels.shape[1] * self.strip.pixels.shape[2] / side**2
         if seconds is None:

@@ -1,0 +1,45 @@
+"""Counting a network's work in multiply-adds, to report costs that do not depend on
+the machine (relocfw.core.sampling.sample_share)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch import nn
+
+
+def layer_multiply_adds(layer: nn.Module, output: torch.Tensor) -> int:
+    """Multiply-adds a convolution or linear layer made to produce `output` (0 for any
+    other layer: activations, pooling, normalisation and dropout are a small share of
+    a CNN's work and are not counted)."""
+    if isinstance(layer, (nn.Conv1d, nn.Conv2d, nn.Conv3d)):
+        per_output = layer.in_channels // layer.groups * math.prod(layer.kernel_size)
+        return output.numel() * per_output
+    if isinstance(layer, nn.Linear):
+        return output.numel() * layer.in_features
+    return 0
+
+
+def multiply_adds(network: nn.Module, run: Callable[[], Any]) -> int:
+    """Multiply-adds of `network`'s convolutions and linear layers while `run()` runs.
+
+    Counted by forward hooks, so layers run twice (e.g. once per Monte Carlo sample)
+    count twice, and layers that do not run count nothing.
+    """
+    total = 0
+
+    def count(layer: nn.Module, _inputs: Any, output: Any) -> None:
+        nonlocal total
+        if isinstance(output, torch.Tensor):
+            total += layer_multiply_adds(layer, output)
+
+    hooks = [layer.register_forward_hook(count) for layer in network.modules()]
+    try:
+        run()
+    finally:
+        for hook in hooks:
+            hook.remove()
+    return total
