@@ -7,8 +7,8 @@ round(dec / (2^n - 1) * span): all-zeros and all-ones reach both edges and, sinc
 Fitness is exp(-distance); parents are drawn by roulette, paired for single-point
 crossover with probability Pc, and each bit flips with probability Pm.
 
-Each query draws its own random stream from the search's seed and the query's
-`query_seed` (a fingerprint of the image, see relocfw.core.interfaces.query_seed): a test
+Each query draws its own random stream from the search's seed and the query's seed
+(a fingerprint of the image, see relocfw.core.interfaces.SearchQuery): a test
 split is many independent GA runs, not one run repeated, and the same image still
 gives the same crop.
 """
@@ -20,14 +20,13 @@ from collections.abc import Sequence
 import numpy as np
 
 from relocfw.core.interfaces import (
-    CropDistance,
+    CropProposals,
     CropSearch,
+    SearchQuery,
     crop_at,
     crop_side_and_span,
-    query_seed,
 )
 from relocfw.core.options import integer_at_least, probability
-from relocfw.core.values import Crop
 
 
 def chromosome_bits(span: int) -> int:
@@ -71,7 +70,9 @@ class GeneticCropSearch(CropSearch):
         iterations: generations bred after the initial one (paper: 3), so at most
             population * (iterations + 1) crops are scored.
         seed: the search's seed; each query's stream is drawn from it and the query's
-            `query_seed`, so the same image gives the same crop.
+            seed, so the same image gives the same crop.
+
+    An ask/tell search: each generation's new offsets are one batch (`propose`).
     """
 
     def __init__(
@@ -88,25 +89,23 @@ class GeneticCropSearch(CropSearch):
         self.iterations = integer_at_least("iterations", iterations, 0)
         self.seed = integer_at_least("seed", seed, 0)
 
-    def search(self, width: int, height: int, distance: CropDistance) -> Crop:
+    def propose(self, query: SearchQuery) -> CropProposals:
+        width, height = query.width, query.height
         _, span = crop_side_and_span(width, height)
         if span == 0:
             return crop_at(0, width, height)
-        rng = np.random.default_rng([self.seed, query_seed(distance)])
+        rng = np.random.default_rng([self.seed, query.seed])
         bits = chromosome_bits(span)
         weights = 2 ** np.arange(bits - 1, -1, -1)  # most significant bit first
         scores: dict[int, float] = {}  # offset -> distance; an offset is scored once
-
-        def score(offsets: list[int]) -> np.ndarray:
-            new = list(dict.fromkeys(o for o in offsets if o not in scores))
-            if new:
-                values = distance([crop_at(o, width, height) for o in new])
-                scores.update(zip(new, (float(v) for v in values), strict=True))
-            return np.array([scores[o] for o in offsets])
-
         chromosomes = rng.integers(0, 2, size=(self.population, bits))
         for generation in range(self.iterations + 1):
-            distances = score(offset_of(chromosomes @ weights, bits, span).tolist())
+            offsets = offset_of(chromosomes @ weights, bits, span).tolist()
+            new = list(dict.fromkeys(o for o in offsets if o not in scores))
+            if new:
+                values = yield [crop_at(o, width, height) for o in new]
+                scores.update(zip(new, (float(v) for v in values), strict=True))
+            distances = np.array([scores[o] for o in offsets])
             if generation == self.iterations:
                 break
             # exp(-(d - min d)) has the same proportions as exp(-d) without underflow.

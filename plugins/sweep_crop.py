@@ -4,9 +4,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from relocfw.core.interfaces import CropDistance, CropSearch, crop_at, crop_side_and_span
+from relocfw.core.interfaces import (
+    CropProposals,
+    CropSearch,
+    SearchQuery,
+    crop_at,
+    crop_side_and_span,
+)
 from relocfw.core.options import integer_at_least
-from relocfw.core.values import Crop
 
 
 class SweepCrop(CropSearch):
@@ -20,10 +25,11 @@ class SweepCrop(CropSearch):
     def __init__(self, stride: int = 1) -> None:
         self.stride = integer_at_least("stride", stride, 1)
 
-    def search(self, width: int, height: int, distance: CropDistance) -> Crop:
-        _, span = crop_side_and_span(width, height)
+    def propose(self, query: SearchQuery) -> CropProposals:
+        _, span = crop_side_and_span(query.width, query.height)
         offsets = list(range(0, span + 1, self.stride))
         if offsets[-1] != span:
             offsets.append(span)
-        crops = [crop_at(o, width, height) for o in offsets]
-        return crops[int(np.argmin(distance(crops)))]
+        crops = [crop_at(o, query.width, query.height) for o in offsets]
+        distances = yield crops  # every offset in one batch
+        return crops[int(np.argmin(distances))]

@@ -3,8 +3,9 @@
 The package is five parts, imports running one way (app -> report -> model, data ->
 core), checked by tests/test_layout.py:
 
-- `relocfw.core`: the plugin interfaces, values, the `Relocalizer` pipeline, geometry,
-  imaging, descriptor standardisation, test-time sampling. Plain Python + torch.
+- `relocfw.core`: the plugin interfaces, values, the `Relocalizer` pipeline and its
+  stages (scorer, search loop, sampling, retrieval), `QueryOptions`, geometry, imaging,
+  descriptor standardisation. Plain Python + torch.
 - `relocfw.model`: the pose head, loss, training, checkpoints, model files, ONNX.
 - `relocfw.data`: dataset loaders and the synthetic scene.
 - `relocfw.report`: evaluation, metrics, statistics over seeds, comparisons, figures,
@@ -16,8 +17,16 @@ import importlib
 import sys
 
 from relocfw.core.errors import ConfigError, DataError, RelocfwError
-from relocfw.core.interfaces import Backbone, CropDistance, CropSearch, SimilarityIndex
+from relocfw.core.interfaces import (
+    Backbone,
+    CropDistance,
+    CropProposals,
+    CropSearch,
+    SearchQuery,
+    SimilarityIndex,
+)
 from relocfw.core.pipeline import Relocalizer
+from relocfw.core.query_options import QueryOptions
 from relocfw.core.values import Crop, Localization, Pose, PoseOutput
 from relocfw.core.version import VERSION
 from relocfw.model.model_file import load_model, save_model
@@ -27,13 +36,16 @@ __all__ = [
     "ConfigError",
     "Crop",
     "CropDistance",
+    "CropProposals",
     "CropSearch",
     "DataError",
     "Localization",
     "Pose",
     "PoseOutput",
+    "QueryOptions",
     "Relocalizer",
     "RelocfwError",
+    "SearchQuery",
     "SimilarityIndex",
     "load_model",
     "save_model",

@@ -54,7 +54,9 @@ def localize_images(
     """Localize every image; write poses.txt (TUM format) and localization.csv."""
     progress = Progress(len(images), "localizing", quiet=quiet)
     answers = []
-    group = getattr(relocalizer, "queries_at_once", 1)  # any object with localize works
+    # Any object with `localize` works; a Relocalizer's options say how many at once.
+    options = getattr(relocalizer, "options", None)
+    group = getattr(options, "queries_at_once", 1)
     for start in range(0, len(images), group):
         # Images are read a group at a time, so memory stays flat however many.
         pixels = [read_rgb(path) for path in images[start : start + group]]

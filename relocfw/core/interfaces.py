@@ -1,9 +1,10 @@
-"""The three plugin interfaces. Implementations live in plugins/ or in other packages."""
+"""The plugin interfaces. Implementations live in plugins/ or in other packages."""
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Generator, Mapping, Sequence
+from functools import cached_property
 from typing import ClassVar
 
 import numpy as np
@@ -18,6 +19,14 @@ The pipeline's distance also carries `query_seed`, an integer fingerprint of the
 image; read it with `query_seed(distance)`.
 """
 
+CropProposals = Generator[Sequence[Crop], np.ndarray, Crop]
+"""A crop search in ask/tell form: yields batches of crops, is sent their distances.
+
+`values = yield crops` asks for the [n] map distances of n crops (lower is closer);
+`return crop` names the chosen one. The pipeline drives many queries' proposals in
+one loop, their crops in merged forward passes (`CropSearch.propose`).
+"""
+
 
 def query_seed(distance: CropDistance) -> int:
     """Seed material of the query being searched, for searches that draw random numbers.
@@ -28,6 +37,39 @@ def query_seed(distance: CropDistance) -> int:
     0 when the caller's `distance` is a plain function that carries none.
     """
     return int(getattr(distance, "query_seed", 0))
+
+
+class SearchQuery:
+    """What a crop search knows of its query: the image's size and its seed.
+
+    Args:
+        width, height: the query image's size in pixels; the square crop's side is
+            min(width, height) and it slides along the longer axis.
+        seed_of: returns the query's seed material (a fingerprint of the image); called
+            at most once, when a search first reads `seed`, because hashing a
+            full-resolution image costs milliseconds that centre and sweep need not pay.
+    """
+
+    def __init__(self, width: int, height: int, seed_of: Callable[[], int] = lambda: 0):
+        self.width = int(width)
+        self.height = int(height)
+        self._seed_of = seed_of
+
+    @cached_property
+    def seed(self) -> int:
+        """Mix with the search's own seed (`np.random.default_rng([seed, query.seed])`):
+        each query gets its own stream, and the same image the same crop."""
+        return int(self._seed_of())
+
+
+def drive(proposals: CropProposals, distance: CropDistance) -> Crop:
+    """Run one query's proposals to its crop, each batch scored by `distance`."""
+    try:
+        crops = next(proposals)
+        while True:
+            crops = proposals.send(distance(crops))
+    except StopIteration as end:
+        return end.value
 
 
 class Backbone(torch.nn.Module, ABC):
@@ -140,22 +182,60 @@ class SimilarityIndex(ABC):
         """
 
 
-class CropSearch(ABC):
+class CropSearch(ABC):  # noqa: B024 - one of two methods, checked in __new__
     """Chooses the square crop of a width x height image whose descriptor is closest.
 
     The square's side is min(width, height); a search moves it along the longer axis.
+    A search defines `propose` (ask/tell: the pipeline batches many queries' crops
+    into one forward pass per round) or, the older form, `search` (one query at a
+    time, blocking inside `distance`); each is available from the other.
+
+    Example:
+        >>> class LeftEdge(CropSearch):
+        ...     def propose(self, query):
+        ...         crops = [crop_at(0, query.width, query.height)]
+        ...         distances = yield crops
+        ...         return crops[int(np.argmin(distances))]
+        >>> LeftEdge().search(8, 4, lambda crops: np.zeros(len(crops)))
+        Crop(x=0, y=0, size=4)
     """
 
-    @abstractmethod
+    def __new__(cls, *args: object, **kwargs: object) -> CropSearch:
+        if cls.propose is CropSearch.propose and cls.search is CropSearch.search:
+            raise TypeError(
+                f"Can't instantiate {cls.__name__}: a CropSearch defines propose(query) "
+                "(or the older search(width, height, distance))"
+            )
+        return super().__new__(cls)
+
+    def propose(self, query: SearchQuery) -> CropProposals:
+        """Ask for crops' distances (`values = yield crops`), then `return` the crop.
+
+        Shape:
+            each yield: a sequence of n crops; what comes back: [n] float distances.
+
+        Ask for each crop once: the pipeline never scores a window twice for a
+        query, but a batch of already-known crops still costs a round. Keep
+        per-query state in the generator's locals and draw random numbers from
+        `np.random.default_rng([own seed, query.seed])`, never a global generator.
+        """
+        raise NotImplementedError(f"{type(self).__name__} defines only search")
+
     def search(self, width: int, height: int, distance: CropDistance) -> Crop:
         """Return the chosen crop; `distance` scores many crops per call.
 
-        A search that draws random numbers seeds them from its own seed and
-        `query_seed(distance)`, so each query is searched independently.
-        `Relocalizer.localize_many` runs several queries' searches at once, each in a
-        thread: keep per-query state in local variables, not on `self`, and draw
-        from your own generator, never a global one.
+        The older, blocking form, kept for searches written against it: the pipeline
+        runs such a search one query at a time. A search that defines `propose` gets
+        this from it. A search that draws random numbers seeds them from its own seed
+        and `query_seed(distance)`, so each query is searched independently.
         """
+        query = SearchQuery(width, height, lambda: query_seed(distance))
+        return drive(self.propose(query), distance)
+
+    @property
+    def asks_and_tells(self) -> bool:
+        """True when the search defines `propose`, so queries can be searched together."""
+        return type(self).propose is not CropSearch.propose
 
 
 def crop_side_and_span(width: int, height: int) -> tuple[int, int]:

@@ -15,6 +15,7 @@ anything is imported, and the imported class must implement the part's interface
 from __future__ import annotations
 
 import importlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -24,10 +25,16 @@ from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.plugin_registry import registered_targets
+from relocfw.core.query_options import QueryOptions
 from relocfw.core.values import Pose
 from relocfw.model.checkpoints import read_torch_file, save_atomic
 
-MODEL_FORMAT = 2  # 2: input normalisation and training crop_scale saved in the state
+# 2: input normalisation and training crop_scale saved in the state; 3: every query
+# option as one QueryOptions mapping ("query"). Format 2 files are still read.
+MODEL_FORMAT = 3
+READABLE_FORMATS = (2, 3)
+# What format 2 stored of the query options, each at the top level.
+FORMAT_2_QUERY_KEYS = ("retrieval_k", "crop_samples", "sample_seed", "rerank")
 MODEL_KIND = "relocfw-model"
 # The parts of a model file: the config group that registers their classes, and the
 # interface the class must implement.
@@ -131,14 +138,15 @@ def save_model(
     Raises:
         ConfigError: a part's class is not a registered plugin (see load_model).
     """
-    parts = {"backbone": relocalizer.backbone, "index": relocalizer.index, "crop": relocalizer.crop}
+    parts = {
+        "backbone": relocalizer.backbone,
+        "index": relocalizer.index,
+        "crop": relocalizer.search,
+    }
     payload: dict[str, Any] = {
         "kind": MODEL_KIND,
         "format": MODEL_FORMAT,
-        "retrieval_k": relocalizer.retrieval_k,
-        "crop_samples": relocalizer.crop_samples,
-        "sample_seed": relocalizer.sample_seed,
-        "rerank": relocalizer.rerank,
+        "query": relocalizer.options.as_dict(),
         "metadata": metadata,
     }
     for name, part in parts.items():
@@ -158,10 +166,28 @@ def save_model(
     return Path(path)
 
 
+def stored_options(payload: dict[str, Any], path: Path) -> dict[str, Any]:
+    """The query options a model file stores, as a mapping (format 2: its four keys)."""
+    if payload.get("format") == 2:
+        return {key: payload[key] for key in FORMAT_2_QUERY_KEYS if key in payload}
+    query = payload.get("query")
+    if not isinstance(query, dict):
+        raise DataError(f"{path}: damaged model file (query options are not a mapping)")
+    return query
+
+
 def load_model(
-    path: Path, device: str | torch.device = "cpu", batch_size: int = 16, scoring: str = "plain"
+    path: Path,
+    device: str | torch.device = "cpu",
+    overrides: Mapping[str, Any] | None = None,
 ) -> Relocalizer:
     """The Relocalizer saved in `path`, ready to localize.
+
+    Args:
+        path: a model file written by `save_model` (task=relocalize's model.relocfw).
+        device: where the network runs.
+        overrides: QueryOptions fields to change from the file's (None values keep
+            the file's), e.g. {"batch_size": 64, "scoring": "shared"}.
 
     A model file is data, but loading one builds its parts: it trusts the installed
     plugins, not the file. Each part's class must be a `_target_` registered by a
@@ -171,16 +197,17 @@ def load_model(
     Raises:
         DataError: not a model file of this format, damaged, or naming a class that is
             not a registered plugin of the right interface.
+        ConfigError: an override that is not a query option or not valid.
     """
     path = Path(path)
     payload = read_torch_file(path, "model")
     if not isinstance(payload, dict) or payload.get("kind") != MODEL_KIND:
         raise DataError(f"{path} is not a relocfw model file")
-    if payload.get("format") != MODEL_FORMAT:
+    if payload.get("format") not in READABLE_FORMATS:
         raise DataError(
-            f"{path} is model format {payload.get('format')}; this relocfw reads format "
-            f"{MODEL_FORMAT}: run `relocfw task=relocalize` again with this version to "
-            "write a new one"
+            f"{path} is model format {payload.get('format')}; this relocfw reads formats "
+            f"{' and '.join(map(str, READABLE_FORMATS))}: run `relocfw task=relocalize` "
+            "again with this version to write a new one"
         )
     # Every class is checked before any part is built: a refused crop class must not
     # leave a half-built backbone behind, nor follow work done for it.
@@ -194,18 +221,22 @@ def load_model(
         crop = classes["crop"](**payload["crop"]["options"])
     except (KeyError, TypeError, RuntimeError) as error:
         raise DataError(f"{path}: damaged or incompatible model file ({error})") from error
-    relocalizer = Relocalizer(
-        backbone,
-        index,
-        crop,
-        device,
-        batch_size,
-        payload["retrieval_k"],
-        scoring,
-        crop_samples=payload.get("crop_samples", 0),
-        sample_seed=payload.get("sample_seed", 0),
-        rerank=payload.get("rerank", 1) if scoring == "shared" else 1,
-    )
+    stored = dict(stored_options(payload, path))
+    given = {k: v for k, v in dict(overrides or {}).items() if v is not None}
+
+    def settled(values: dict[str, Any]) -> dict[str, Any]:
+        # Re-ranking re-scores shared candidates: with plain scoring (asked for now, or
+        # a format 2 file, which did not store its scoring) a stored rerank is moot.
+        if values.get("scoring", "plain") == "plain" and "rerank" not in given:
+            values["rerank"] = 1
+        return values
+
+    try:
+        QueryOptions.from_mapping(settled(dict(stored)), where=f"{path}: query options")
+    except ConfigError as error:
+        raise DataError(f"damaged model file: {error}") from error
+    options = QueryOptions.from_mapping(settled({**stored, **given}), where="query")
+    relocalizer = Relocalizer(backbone, index, crop, options, device)
     if "map_poses" in payload:
         relocalizer.map_poses = [Pose(row[:3], row[3:]) for row in payload["map_poses"].numpy()]
     relocalizer.metadata = payload["metadata"]

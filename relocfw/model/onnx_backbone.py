@@ -113,7 +113,7 @@ def onnx_relocalizer(
             dropout, which the ONNX graph cannot do.
         DataError: the file is missing, unreadable or exported from other weights.
     """
-    check_onnx_scoring(relocalizer.scoring)
+    check_onnx_scoring(relocalizer.options.scoring)
     samples = configured_samples(relocalizer.backbone)
     if samples > 0:
         raise ConfigError(

@@ -4,7 +4,7 @@ The paper's premise is that, of the square crops of a query, the one whose
 descriptor lies nearest the map yields the most accurate pose. A crop search can only
 be as good as that premise, so this module measures it directly, for any fitted
 Relocalizer: every crop offset of every test query is scored once (the windows the
-sweep would try, `Relocalizer.score_windows`), and `summarise_headroom` compares three
+sweep would try, relocfw.report.window_scores), and `summarise_headroom` compares three
 choices per query: the centre crop (PoseNet), the crop of smallest map distance (a
 perfect search of the paper's objective) and the oracle crop (the best any crop could
 do, chosen with the ground truth). No Hydra here: the CLI (relocfw.app.cli_diagnose) and
@@ -26,6 +26,7 @@ from relocfw.core.progress import Progress
 from relocfw.core.values import Pose
 from relocfw.data.frames import Frame
 from relocfw.report.statistics import spearman
+from relocfw.report.window_scores import score_windows
 
 
 @dataclass(frozen=True)
@@ -96,7 +97,7 @@ def diagnose(
     progress = Progress(len(images), "scoring every crop offset", quiet=quiet)
     queries = []
     for frame, image in zip(frames, images, strict=True):
-        scores = relocalizer.score_windows(image)
+        scores = score_windows(relocalizer, image)
         position, orientation = pose_errors(scores.positions, scores.quaternions, frame.pose)
         queries.append(
             QueryWindows(

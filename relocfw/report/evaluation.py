@@ -73,7 +73,9 @@ def evaluate(
         relocalizer.localize(images[0])
     progress = Progress(len(frames), f"relocalizing ({method})", quiet=quiet)
     answers = []
-    group = getattr(relocalizer, "queries_at_once", 1)  # any object with localize works
+    # Any object with `localize` works; a Relocalizer's options say how many at once.
+    options = getattr(relocalizer, "options", None)
+    group = getattr(options, "queries_at_once", 1)
     for start in range(0, len(images), group):
         # Groups of queries share forward passes (Relocalizer.localize_many); one
         # query at a time when queries_at_once is 1, its latency then its own.

@@ -1,0 +1,110 @@
+"""QueryOptions: how the pipeline localizes a query, one validated value.
+
+What a model file stores besides its plugins, what `task=localize` overrides key by
+key (`query.*=null` keeps the file's value), and what `Relocalizer` reads. Checks that
+need only the options run once, here; those that need the backbone or the index
+(shared scoring needs a backbone with feature maps, retrieval an index that names its
+neighbours) run when a Relocalizer is built (relocfw.core.pipeline.check_options).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from relocfw.core.errors import ConfigError
+from relocfw.core.options import integer_at_least
+
+SCORINGS = ("plain", "shared")
+
+
+@dataclass(frozen=True)
+class QueryOptions:
+    """How a query is localized; every field has the paper's behaviour as its default.
+
+    Args:
+        batch_size: most crops per forward pass (and map images when fitting).
+        scoring: how candidate crops are scored. "plain": each distinct window goes
+            through the whole network (the paper). "shared": the trunk runs once over
+            the whole strip and every candidate is pooled from its maps
+            (relocfw.core.window_pooling); the chosen crop then goes through the plain
+            path once, so the pose is the plain pose of that crop. Needs a backbone
+            with `feature_maps` and `describe_pooled`.
+        rerank: with scoring="shared", the `rerank` windows with the smallest shared
+            distances (the search's choice among them) go through the plain network in
+            one batch and the smallest plain distance chooses. 1: the search's choice.
+        crop_samples: > 0 answers with the mean pose of this many random windows of the
+            chosen crop (test-time crop sampling, relocfw.core.sampling); with the
+            backbone's Monte Carlo dropout on, each window gets its own mask. Needs a
+            model trained with crop_scale > 1 (else every window is the same).
+        sample_seed: seeds the samples, mixed with each query image's fingerprint.
+        retrieval_k: 0 answers with the network's pose (PoseNet and the paper). k > 0
+            answers with the distance-weighted mean pose of the k map images nearest to
+            the chosen crop's descriptor: the image-retrieval baseline. Needs an index
+            with `neighbours` (index=exhaustive) and the map images' poses.
+        queries_at_once: how many queries of a list (`localize_many`, a test split)
+            are searched together, their windows in merged forward passes; the answers
+            are the same. 1: one at a time, so each query's `seconds` is its latency.
+
+    Raises:
+        ConfigError: naming the option, for a wrong type, range or combination.
+    """
+
+    batch_size: int = 16
+    scoring: str = "plain"
+    rerank: int = 1
+    crop_samples: int = 0
+    sample_seed: int = 0
+    retrieval_k: int = 0
+    queries_at_once: int = 1
+
+    def __post_init__(self) -> None:
+        # Frozen: the checked (int) values replace what was given, once.
+        for name, least in (
+            ("batch_size", 1),
+            ("rerank", 1),
+            ("crop_samples", 0),
+            ("sample_seed", 0),
+            ("retrieval_k", 0),
+            ("queries_at_once", 1),
+        ):
+            object.__setattr__(self, name, integer_at_least(name, getattr(self, name), least))
+        if self.scoring not in SCORINGS:
+            raise ConfigError(f"scoring must be one of {', '.join(SCORINGS)}, got {self.scoring!r}")
+        if self.rerank > 1 and self.scoring != "shared":
+            raise ConfigError(
+                f"rerank={self.rerank} re-scores the best shared-scoring candidates "
+                f"plainly; with scoring={self.scoring} every candidate is already plain "
+                "(use scoring=shared)"
+            )
+
+    @property
+    def samples_pose(self) -> bool:
+        """True when the answer is sampled from random windows of the chosen crop."""
+        return self.crop_samples > 0
+
+    def replace(self, **changes: Any) -> QueryOptions:
+        """These options with some changed (checked again); None keeps a value."""
+        return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain values, as a model file stores them."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_mapping(cls, values: Mapping[str, Any], where: str = "query") -> QueryOptions:
+        """Options from a mapping (a model file's, a config group's); None = default.
+
+        Raises:
+            ConfigError: an unknown key (named with `where`), or a bad value.
+        """
+        known = {field.name for field in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ConfigError(
+                f"{where}: unknown option(s) {', '.join(unknown)}; "
+                f"known: {', '.join(sorted(known))}"
+            )
+        return cls(**{k: v for k, v in values.items() if v is not None})

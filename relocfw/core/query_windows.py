@@ -1,0 +1,131 @@
+"""One query's strip and every window scored for it, each scored once.
+
+A crop search asks for crops; offsets that round to the same strip window are the
+same network input, so everything is kept per window and a window is computed once
+(`evaluations` counts the distinct windows scored).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from functools import cached_property
+
+import numpy as np
+
+from relocfw.core.imaging import image_fingerprint
+from relocfw.core.interfaces import SearchQuery
+from relocfw.core.network_answers import NetworkAnswers
+from relocfw.core.scorer import Corner, Scorer
+from relocfw.core.values import Crop
+from relocfw.core.window_pooling import StripMaps
+
+
+class QueryWindows:
+    """A query's windows: their plain answers and, with scoring=shared, shared distances.
+
+    Args:
+        image: the query, H x W x 3 uint8 RGB (checked by the caller).
+        scorer: the network and the map.
+        scoring: "plain" or "shared" (relocfw.core.query_options.QueryOptions).
+
+    Calling it with crops is the query's CropDistance (it also carries `query_seed`),
+    what the older `CropSearch.search` form is given.
+    """
+
+    def __init__(self, image: np.ndarray, scorer: Scorer, scoring: str = "plain") -> None:
+        self.started = time.perf_counter()
+        self.image = image
+        self.scorer = scorer
+        self.scoring = scoring
+        self.strip = scorer.strip(image)
+        self.plain: dict[Corner, tuple[float, NetworkAnswers]] = {}
+        self.shared: dict[Corner, float] = {}
+        self.strip_maps: StripMaps | None = None  # built on the first shared score
+        self.crop_of: dict[Corner, Crop] = {}  # a crop for every window asked for
+
+    @cached_property
+    def query_seed(self) -> int:
+        """The image's fingerprint, computed when first read: hashing a full-resolution
+        image costs 1-7 ms that centre and sweep need not pay."""
+        return image_fingerprint(self.image)
+
+    def search_query(self) -> SearchQuery:
+        """What an ask/tell search is told of this query."""
+        return SearchQuery(self.image.shape[1], self.image.shape[0], lambda: self.query_seed)
+
+    def corners(self, crops: Sequence[Crop]) -> list[Corner]:
+        """The strip windows of `crops`, remembering a crop for each."""
+        corners = [self.strip.window(c) for c in crops]
+        for corner, crop in zip(corners, crops, strict=True):
+            self.crop_of.setdefault(corner, crop)
+        return corners
+
+    def unscored(self, corners: Sequence[Corner]) -> list[Corner]:
+        """Distinct plain windows among `corners` not scored yet, in order."""
+        return list(dict.fromkeys(c for c in corners if c not in self.plain))
+
+    def keep_plain(self, corners: Sequence[Corner], scored: tuple[np.ndarray, NetworkAnswers]):
+        distances, answers = scored
+        for i, corner in enumerate(corners):
+            self.plain[corner] = (float(distances[i]), answers.row(i))
+
+    def score_plain(self, corners: Sequence[Corner]) -> None:
+        new = self.unscored(corners)
+        if new:
+            self.keep_plain(new, self.scorer.plain(self.strip, new))
+
+    def score_shared(self, corners: Sequence[Corner]) -> None:
+        new = list(dict.fromkeys(c for c in corners if c not in self.shared))
+        if not new:
+            return
+        if self.strip_maps is None:
+            self.strip_maps = self.scorer.strip_maps(self.strip)
+        distances = self.scorer.shared(self.strip_maps, new)
+        self.shared.update(zip(new, (float(d) for d in distances), strict=True))
+
+    def distances(self, corners: Sequence[Corner]) -> np.ndarray:
+        """[n] distances of windows already scored the way `scoring` says."""
+        if self.scoring == "shared":
+            return np.array([self.shared[c] for c in corners])
+        return np.array([self.plain[c][0] for c in corners])
+
+    def __call__(self, crops: Sequence[Crop]) -> np.ndarray:
+        corners = self.corners(crops)
+        if self.scoring == "shared":
+            self.score_shared(corners)
+        else:
+            self.score_plain(corners)
+        return self.distances(corners)
+
+    def rerank(self, chosen: Crop, count: int) -> Crop:
+        """With shared scoring, the best of the `count` best shared windows by plain
+        distance (the search's own choice always among them); `chosen` otherwise.
+
+        The shared distances only rank: the candidates go through the plain network
+        in one batch.
+        """
+        if count <= 1 or not self.shared:
+            return chosen
+        corner = self.strip.window(chosen)
+        ranked = sorted(self.shared, key=self.shared.__getitem__)
+        candidates = list(dict.fromkeys([corner, *ranked]))[:count]
+        self.score_plain(candidates)
+        best = min(candidates, key=lambda c: self.plain[c][0])
+        return chosen if best == corner else self.crop_of[best]
+
+    def answer_of(self, crop: Crop) -> tuple[float, NetworkAnswers]:
+        """The plain distance and answer of `crop`'s window (scored here if need be)."""
+        corner = self.strip.window(crop)
+        self.score_plain([corner])
+        return self.plain[corner]
+
+    @property
+    def evaluations(self) -> int:
+        """Distinct windows scored, plainly or shared."""
+        return len(set(self.plain) | set(self.shared))
+
+    def network_passes(self) -> float:
+        """Plain windows plus, with shared scoring, the strip pass in window passes."""
+        strip = 0.0 if self.strip_maps is None else self.scorer.strip_passes(self.strip)
+        return len(self.plain) + strip

@@ -1,0 +1,86 @@
+"""One plain loop that runs the crop searches of a group of queries together.
+
+Each ask/tell search (`CropSearch.propose`) yields a batch of crops and waits to be
+sent their distances. A round collects what every unfinished query asks, scores the
+new plain windows of all of them in one merged forward pass (split into `batch_size`
+chunks), sends each query its distances, and goes on until every search has named its
+crop. No threads: an error is raised where it happens, and Ctrl-C stops the loop at
+once. Shared scoring pools each query from its own strip's maps, query by query.
+
+A search that only defines the older `search(width, height, distance)` blocks inside
+`distance`, so its queries run one at a time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+from relocfw.core.errors import RelocfwError
+from relocfw.core.interfaces import CropProposals, CropSearch
+from relocfw.core.query_windows import QueryWindows
+from relocfw.core.values import Crop
+
+
+def search_together(search: CropSearch, queries: Sequence[QueryWindows]) -> list[Crop]:
+    """The crop each query's search chooses, the group's plain windows scored together."""
+    if not search.asks_and_tells:
+        return [
+            checked(search, search.search(q.image.shape[1], q.image.shape[0], q), q)
+            for q in queries
+        ]
+    proposals: dict[int, CropProposals] = {}
+    asked: dict[int, list] = {}  # query -> the corners of the crops it asked for
+    chosen: dict[int, Crop] = {}
+
+    def advance(member: int, values: object) -> None:
+        """Send `values` (None: start) and keep what the search asks next or chose."""
+        try:
+            crops = next(proposals[member]) if values is None else proposals[member].send(values)
+        except StopIteration as end:
+            chosen[member] = checked(search, end.value, queries[member])
+            asked.pop(member, None)
+            return
+        asked[member] = queries[member].corners(crops)
+
+    for member, query in enumerate(queries):
+        proposals[member] = search.propose(query.search_query())
+        advance(member, None)
+    while asked:
+        score_round(queries, asked)
+        for member, corners in list(asked.items()):
+            advance(member, queries[member].distances(corners))
+    return [chosen[member] for member in range(len(queries))]
+
+
+def score_round(queries: Sequence[QueryWindows], asked: dict[int, list]) -> None:
+    """Score every window asked for this round that its query has not scored yet."""
+    plain: dict[int, list] = {}
+    for member, corners in asked.items():
+        if queries[member].scoring == "shared":
+            queries[member].score_shared(corners)
+            continue
+        new = queries[member].unscored(corners)
+        if new:
+            plain[member] = new
+    if not plain:
+        return
+    scorer = queries[next(iter(plain))].scorer
+    scored = scorer.plain_together([(queries[m].strip, corners) for m, corners in plain.items()])
+    for (member, corners), answers in zip(plain.items(), scored, strict=True):
+        queries[member].keep_plain(corners, answers)
+
+
+def checked(search: CropSearch, crop: object, query: QueryWindows) -> Crop:
+    """The search's choice if it is a crop of the query image; RelocfwError if not."""
+    height, width = query.image.shape[:2]
+    if not isinstance(crop, Crop):
+        raise RelocfwError(
+            f"crop search {type(search).__name__} chose {crop!r}, not a relocfw Crop"
+        )
+    side = min(width, height)
+    if crop.size != side or not (0 <= crop.x <= width - side and 0 <= crop.y <= height - side):
+        raise RelocfwError(
+            f"crop search {type(search).__name__} chose {crop}, which is not a "
+            f"{side} x {side} square inside the {width} x {height} image"
+        )
+    return crop
