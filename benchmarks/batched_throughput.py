@@ -1,9 +1,10 @@
-"""Test-split throughput: one query at a time against groups in lockstep.
+"""Test-split throughput: one query at a time against groups searched together.
 
 Loads a model file written by `relocfw` (task=relocalize) and the test split of the
 dataset it was built on, then localizes the split with each crop search twice: one
-query at a time (`Relocalizer.localize`, as before) and in groups whose candidate
-windows share forward passes (`Relocalizer.localize_many`). Reports queries/s of
+query at a time (`Relocalizer.localize`) and in groups whose searches run in one
+loop, their candidate windows in merged forward passes (`Relocalizer.localize_many`,
+relocfw.core.search_loop). Reports queries/s of
 both, the gain, and how far the two modes' answers are apart (they should be the
 same up to float rounding). Prints a table, writes JSON.
 
@@ -24,6 +25,7 @@ from common import (  # benchmarks/, the script's own folder
     DEFAULT_CACHE,
     device_name,
     model_frames,
+    with_search,
     write_json,
 )
 from shared_scoring import pose_difference
@@ -67,10 +69,10 @@ def main() -> None:
     images = read_images(frames[: args.queries] if args.queries else frames, quiet=True)
     for name in args.only:
         crop, scoring = SETTINGS[name]
-        relocalizer = load_model(
-            args.model, args.device, batch_size=args.batch_size, scoring=scoring
+        loaded = load_model(
+            args.model, args.device, {"batch_size": args.batch_size, "scoring": scoring}
         )
-        relocalizer.crop = crop()
+        relocalizer = with_search(loaded, crop())
         relocalizer.localize_many(images[: args.group], args.group)  # warm-up
         single, single_s = timed(lambda r=relocalizer: [r.localize(i) for i in images])
         many, many_s = timed(lambda r=relocalizer: r.localize_many(images, args.group))

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relocfw import CropSearch, Relocalizer
 from relocfw.core.geometry import pose_from_matrix
 from relocfw.core.values import Pose
 from relocfw.data.frames import Frame
@@ -47,6 +48,17 @@ def model_frames(relocalizer, cache_dir: Path, split: str = "test") -> list[Fram
     module, _, name = settings.pop("_target_").rpartition(".")
     dataset = getattr(importlib.import_module(module), name)(cache_dir=cache_dir, **settings)
     return dataset.frames(split)
+
+
+def with_search(relocalizer: Relocalizer, search: CropSearch) -> Relocalizer:
+    """A loaded pipeline with another crop search: the same network, fitted map,
+    options, map poses and metadata (`Relocalizer.replace` keeps the search)."""
+    swapped = Relocalizer(
+        relocalizer.backbone, relocalizer.index, search, relocalizer.options, relocalizer.device
+    )
+    swapped.map_poses = relocalizer.map_poses
+    swapped.metadata = relocalizer.metadata
+    return swapped
 
 
 def device_name(device: str) -> str:

@@ -34,8 +34,7 @@ from common import (  # benchmarks/, the script's own folder
     write_json,
 )
 
-from relocfw import Relocalizer, load_model
-from relocfw.core.imaging import Strip
+from relocfw import QueryOptions, Relocalizer, load_model
 from relocfw.core.interfaces import crop_at, crop_side_and_span
 from relocfw.data.frames import read_images
 from relocfw.plugins.centre_crop import CentreCrop
@@ -81,13 +80,12 @@ def image_sizes(backbone: PoseNet, count: int, map_images: int) -> list[dict]:
         queries = resized(base_queries, width, height)
         views = resized(base_views, width, height)
         k = min(40, map_images)
+        shared = QueryOptions(scoring="shared")
         settings = {
             "centre": Relocalizer(backbone, KMeansIndex(k=k), CentreCrop()),
             "ga plain": Relocalizer(backbone, KMeansIndex(k=k), GeneticCropSearch()),
-            "ga shared": Relocalizer(
-                backbone, KMeansIndex(k=k), GeneticCropSearch(), scoring="shared"
-            ),
-            "sweep shared": Relocalizer(backbone, KMeansIndex(k=k), SweepCrop(), scoring="shared"),
+            "ga shared": Relocalizer(backbone, KMeansIndex(k=k), GeneticCropSearch(), shared),
+            "sweep shared": Relocalizer(backbone, KMeansIndex(k=k), SweepCrop(), shared),
         }
         for relocalizer in settings.values():
             relocalizer.fit(views)
@@ -126,11 +124,10 @@ def real_descriptors(model: Path, cache: Path, most: int) -> np.ndarray:
     """Up to `most` descriptors of the sweep windows of the model's training images."""
     relocalizer = load_model(model)
     images = read_images(model_frames(relocalizer, cache, "train"), quiet=True)
-    size = relocalizer.backbone.input_size
     rng = np.random.default_rng(0)
     parts, total = [], 0
     for i in rng.permutation(len(images)):
-        strip = Strip(images[i], size, relocalizer.crop_scale)
+        strip = relocalizer.scorer.strip(images[i])  # the pipeline's own, crop_scale included
         _, span = crop_side_and_span(strip.width, strip.height)
         corners = list(
             dict.fromkeys(
@@ -138,7 +135,7 @@ def real_descriptors(model: Path, cache: Path, most: int) -> np.ndarray:
             )
         )
         windows = torch.stack([strip.cut(c) for c in corners])
-        parts.append(relocalizer._forward(windows).features)
+        parts.append(relocalizer.scorer.forward(windows).features)
         total += len(corners)
         if total >= most:
             break

@@ -37,12 +37,12 @@ from common import (  # benchmarks/, the script's own folder
     DEFAULT_CACHE,
     device_name,
     model_frames,
+    with_search,
     write_json,
 )
 from shared_scoring import pose_difference
 
 from relocfw import Relocalizer, load_model
-from relocfw.core.imaging import Strip
 from relocfw.data.frames import read_images
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
@@ -56,9 +56,8 @@ def settings(model: Path, reranks: list[int], device: str = "cpu") -> list[tuple
     """(name, relocalizer) of every setting, each with its own loaded copy."""
 
     def load(crop, scoring: str = "plain", rerank: int = 1) -> Relocalizer:
-        relocalizer = load_model(model, device, scoring=scoring)
-        relocalizer.crop, relocalizer.rerank = crop, rerank
-        return relocalizer
+        loaded = load_model(model, device, {"scoring": scoring, "rerank": rerank})
+        return with_search(loaded, crop)
 
     rows = [
         ("centre", load(CentreCrop())),
@@ -73,10 +72,10 @@ def settings(model: Path, reranks: list[int], device: str = "cpu") -> list[tuple
 
 def compare(found: list, plain: list, images: list, relocalizer: Relocalizer) -> dict:
     """How a setting's answers stand against the plain search's, query by query."""
+    strips = [relocalizer.scorer.strip(image) for image in images]
     same = [
-        Strip(image, relocalizer.backbone.input_size, relocalizer.crop_scale).window(a.crop)
-        == Strip(image, relocalizer.backbone.input_size, relocalizer.crop_scale).window(b.crop)
-        for a, b, image in zip(found, plain, images, strict=True)
+        strip.window(a.crop) == strip.window(b.crop)
+        for a, b, strip in zip(found, plain, strips, strict=True)
     ]
     ratio = np.array([a.distance / b.distance for a, b in zip(found, plain, strict=True)])
     positions, angles = pose_difference([a.pose for a in found], [b.pose for b in plain])

@@ -14,7 +14,6 @@ here. Prints a table, writes JSON.
 from __future__ import annotations
 
 import argparse
-import inspect
 import platform
 from pathlib import Path
 
@@ -22,7 +21,7 @@ import numpy as np
 import torch
 from common import render_views, write_json  # benchmarks/, the script's own folder
 
-from relocfw import Relocalizer
+from relocfw import QueryOptions, Relocalizer
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
@@ -41,7 +40,7 @@ def main() -> None:
     backbone = PoseNet(input_size=args.input_size).eval()
     queries, _ = render_views(args.queries, -1)
     map_images, _ = render_views(args.map_images, 0)
-    default = inspect.signature(Relocalizer).parameters["batch_size"].default
+    default = QueryOptions().batch_size
     methods = (
         ("centre", CentreCrop(), "plain", default),
         ("ga", GeneticCropSearch(), "plain", default),
@@ -53,7 +52,8 @@ def main() -> None:
     relocalizers = []
     for _, crop, scoring, batch_size in methods:
         index = KMeansIndex(k=min(40, args.map_images))
-        relocalizer = Relocalizer(backbone, index, crop, batch_size=batch_size, scoring=scoring)
+        options = QueryOptions(batch_size=batch_size, scoring=scoring)
+        relocalizer = Relocalizer(backbone, index, crop, options)
         relocalizer.fit(map_images)
         relocalizer.localize(queries[0])  # warm-up: allocator, thread pool
         relocalizers.append(relocalizer)

@@ -25,11 +25,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from common import DEFAULT_CACHE, model_frames, write_json  # benchmarks/, the script's own folder
+from common import (  # benchmarks/, the script's own folder
+    DEFAULT_CACHE,
+    model_frames,
+    with_search,
+    write_json,
+)
 
 from relocfw import Relocalizer, load_model
 from relocfw.core.geometry import orientation_error_deg, position_error
-from relocfw.core.imaging import Strip
 from relocfw.core.interfaces import crop_at, crop_side_and_span
 from relocfw.core.values import Pose
 from relocfw.data.frames import read_images
@@ -41,17 +45,22 @@ def descriptor_agreement(plain: Relocalizer, shared: Relocalizer, image: np.ndar
     """Shared vs plain descriptors of every distinct sweep window of one image.
 
     The strip and its windows are the pipeline's own (the model's crop_scale
-    included), one window per distinct crop offset.
+    included), one window per distinct crop offset, each scored through the
+    pipeline's Scorer: plainly, and pooled from the strip's maps as scoring=shared
+    pools them (relocfw.core.scorer.Scorer.shared), both looked up in the same map.
     """
-    strip = Strip(image, plain.backbone.input_size, plain.crop_scale)
+    strip = plain.scorer.strip(image)
     _, span = crop_side_and_span(strip.width, strip.height)
     windows = (strip.window(crop_at(o, strip.width, strip.height)) for o in range(span + 1))
     corners = list(dict.fromkeys(windows))
-    exact = plain._forward(torch.stack([strip.cut(c) for c in corners])).features
-    approximate = shared._shared_features(shared._strip_maps(strip), corners)
+    exact = plain.scorer.forward(torch.stack([strip.cut(c) for c in corners])).features
+    maps = shared.scorer.strip_maps(strip)
+    with torch.inference_mode():  # the descriptors Scorer.shared looks up in the map
+        pooled = shared.backbone.describe_pooled(maps.pooled(corners))
+    approximate = pooled.double().cpu().numpy()
     relative = np.linalg.norm(approximate - exact, axis=1) / np.linalg.norm(exact, axis=1)
-    exact_distance = plain.index.distance(exact)
-    approximate_distance = plain.index.distance(approximate)
+    exact_distance = plain.scorer.map_distance(exact)
+    approximate_distance = plain.scorer.map_distance(approximate)
     picked = int(np.argmin(approximate_distance))
     return {
         "relative_l2": relative,
@@ -91,7 +100,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/shared_scoring.json"))
     args = parser.parse_args()
     plain = load_model(args.model)
-    shared = load_model(args.model, scoring="shared")
+    shared = load_model(args.model, overrides={"scoring": "shared"})
     frames = model_frames(plain, args.cache.expanduser())
     images = read_images(frames, quiet=True)
 
@@ -99,9 +108,10 @@ def main() -> None:
     relative = np.concatenate([a["relative_l2"] for a in agreement])
     rows, answers = [], {}
     for search, seeds in (("ga", range(args.seeds)), ("sweep", [None])):
-        for scoring, relocalizer in (("plain", plain), ("shared", shared)):
+        for scoring, loaded in (("plain", plain), ("shared", shared)):
             for seed in seeds:
-                relocalizer.crop = SweepCrop() if seed is None else GeneticCropSearch(seed=seed)
+                crop = SweepCrop() if seed is None else GeneticCropSearch(seed=seed)
+                relocalizer = with_search(loaded, crop)
                 found = [relocalizer.localize(image) for image in images]
                 answers[search, scoring, seed] = found
                 position, angle = errors(found, frames)

@@ -6,7 +6,7 @@ from relocfw.core.errors import ConfigError
 from relocfw.core.imaging import image_fingerprint
 from relocfw.core.interfaces import CropSearch, crop_at, query_seed
 from relocfw.core.pipeline import Relocalizer
-from relocfw.core.query_run import QueryRun
+from relocfw.core.query_windows import QueryWindows
 from relocfw.core.values import Crop
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
@@ -121,13 +121,17 @@ def test_the_query_seed_is_the_image_fingerprint_computed_only_when_asked():
     relocalizer = Relocalizer(
         PoseNet(input_size=32, width=0.0625, feature_dim=16), ExhaustiveIndex(), SeedRecorder()
     )
-    query = QueryRun(relocalizer, image, relocalizer._score_corners)
+    query = QueryWindows(image, relocalizer.scorer)
+    told = query.search_query()  # what an ask/tell search is told of the query
     assert "query_seed" not in vars(query)  # a centre crop or sweep never pays the hash
-    assert query_seed(query) == image_fingerprint(image) == image_fingerprint(image.copy())
+    assert told.seed == image_fingerprint(image) == image_fingerprint(image.copy())
+    assert query_seed(query) == told.seed  # the older form's distance carries the same
     assert image_fingerprint(image[:, ::-1]) != image_fingerprint(image)
 
 
 class SeedRecorder(CropSearch):
+    """The older, blocking form: reads the seed from its distance."""
+
     def __init__(self):
         self.seeds = []
 
@@ -136,12 +140,25 @@ class SeedRecorder(CropSearch):
         return crop_at(0, width, height)
 
 
-def test_the_pipeline_hands_each_image_its_fingerprint_as_query_seed():
+class ProposalSeedRecorder(CropSearch):
+    """The ask/tell form: reads the seed from its SearchQuery."""
+
+    def __init__(self):
+        self.seeds = []
+
+    def propose(self, query):
+        self.seeds.append(query.seed)
+        return crop_at(0, query.width, query.height)
+        yield  # a generator that asks for nothing
+
+
+@pytest.mark.parametrize("form", [SeedRecorder, ProposalSeedRecorder], ids=["search", "propose"])
+def test_the_pipeline_hands_each_image_its_fingerprint_as_query_seed(form):
     torch.manual_seed(0)
     backbone = PoseNet(input_size=32, width=0.0625, feature_dim=16)
     rng = np.random.default_rng(0)
     images = [rng.integers(0, 256, size=(36, 48, 3), dtype=np.uint8) for _ in range(3)]
-    search = SeedRecorder()
+    search = form()
     relocalizer = Relocalizer(backbone, ExhaustiveIndex(), search)
     relocalizer.fit(images)
     for image in [images[0], images[1], images[0].copy()]:

@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from relocfw.core.query_options import QueryOptions
 from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
 from relocfw.report.evaluation import MethodResult, evaluate, summarise
@@ -64,12 +65,15 @@ def test_the_thresholds_are_strict_inequalities():
 
 
 class CountingRelocalizer:
-    """Answers with the identity pose; each answer's `evaluations` is its call number."""
+    """Answers with the identity pose; each answer's `evaluations` is its call number.
+
+    `options` says how many queries go at once, as a Relocalizer's do.
+    """
 
     def __init__(self, queries_at_once=1):
         self.seen = []
         self.groups = []
-        self.queries_at_once = queries_at_once
+        self.options = QueryOptions(queries_at_once=queries_at_once)
 
     def localize(self, image):
         self.seen.append(int(image[0, 0, 0]))

@@ -1,5 +1,6 @@
-"""Ctrl-C during a group of queries: raised at once, no search thread left behind."""
+"""Ctrl-C during a group of queries: raised at once on the calling thread, no thread started."""
 
+import math
 import signal
 import sys
 import threading
@@ -9,10 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import Relocalizer
+from relocfw import QueryOptions, Relocalizer
 from relocfw.core.imaging import image_fingerprint
 from relocfw.core.interfaces import CropSearch, crop_at, query_seed
-from relocfw.core.lockstep import Lockstep
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.posenet import PoseNet
@@ -60,7 +60,7 @@ class InterruptedOnCall(PoseNet):
 
 
 def fitted(backbone, crop, scoring="plain") -> Relocalizer:
-    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), crop, scoring=scoring)
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), crop, QueryOptions(scoring=scoring))
     relocalizer.fit([rgb(seed) for seed in range(4)])
     return relocalizer
 
@@ -82,43 +82,36 @@ def test_an_interrupt_in_a_network_pass_is_raised_at_once_and_ends_every_search(
     assert len(backbone.passes) == at
 
 
-def main_thread_waits_in_serve() -> bool:
-    """True while the main thread is blocked in a wait inside Lockstep.serve."""
-    frame = sys._current_frames().get(threading.main_thread().ident)
-    names = []
-    while frame is not None:
-        names.append(frame.f_code.co_name)
-        frame = frame.f_back
-    return names[:1] == ["wait"] and "serve" in names
-
-
-class FirstSearchSignals(CropSearch):
-    """The first search to start waits until the serving thread waits for it, then sends
-    a real SIGINT to the main thread (Ctrl-C) before it asks; the others ask at once."""
+class SignalsOnFirstQuery(CropSearch):
+    """The first query's search sends a real SIGINT to the main thread (Ctrl-C) after
+    its first round, then asks again; the other queries' searches only ask."""
 
     def __init__(self) -> None:
-        self.first = threading.Lock()
         self.signalled_at = float("nan")  # perf_counter() of the SIGINT
+        self.rounds_after = 0  # rounds any search was told after the SIGINT
 
-    def search(self, width, height, distance):
-        if self.first.acquire(blocking=False):
-            deadline = time.perf_counter() + 30
-            while not main_thread_waits_in_serve() and time.perf_counter() < deadline:
-                time.sleep(0.01)
+    def propose(self, query):
+        crop = crop_at(0, query.width, query.height)
+        yield [crop]
+        if math.isnan(self.signalled_at):  # the first search told its distances
             self.signalled_at = time.perf_counter()
             signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
             time.sleep(0.3)
-        distance([crop_at(0, width, height)])
-        return crop_at(0, width, height)
+        else:
+            self.rounds_after += 1
+        yield [crop_at(query.width - query.height, query.width, query.height)]
+        return crop
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="pthread_kill is POSIX")
-def test_ctrl_c_while_the_serving_thread_waits_leaves_no_thread_blocked():
+def test_ctrl_c_during_a_groups_search_is_raised_at_once_on_the_calling_thread():
     assert threading.current_thread() is threading.main_thread()
-    search = FirstSearchSignals()
-    relocalizer = fitted(InterruptedOnCall(), search)
+    search = SignalsOnFirstQuery()
+    backbone = InterruptedOnCall()
+    relocalizer = fitted(backbone, search)
     before = threading.active_count()
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    backbone.arm(at=None)
     try:
         with pytest.raises(KeyboardInterrupt):
             relocalizer.localize_many(QUERIES, queries_at_once=4)
@@ -127,55 +120,56 @@ def test_ctrl_c_while_the_serving_thread_waits_leaves_no_thread_blocked():
         signal.signal(signal.SIGINT, previous)
     assert elapsed < PROMPT_SECONDS
     assert threading.active_count() == before
+    # The loop stopped where the signal landed: no other search was told its round,
+    # and the second round's windows never went through the network.
+    assert search.rounds_after == 0 and backbone.passes == ["window"]
 
 
-class FailsByQuery(CropSearch):
-    """The search of each query in `errors` (index -> error) raises that error."""
+class ErrorsByQuery:
+    """The search of each query in `errors` (index -> error) raises that error after
+    its first round."""
 
     def __init__(self, errors: dict[int, BaseException]) -> None:
         self.errors = {image_fingerprint(QUERIES[i]): error for i, error in errors.items()}
 
-    def search(self, width, height, distance):
-        distance([crop_at(0, width, height)])
-        error = self.errors.get(query_seed(distance))
+    def raise_for(self, seed: int) -> None:
+        error = self.errors.get(seed)
         if error is not None:
             raise error
+
+
+class FailsByQuery(ErrorsByQuery, CropSearch):
+    """The older, blocking form: the group's queries run one at a time."""
+
+    def search(self, width, height, distance):
+        distance([crop_at(0, width, height)])
+        self.raise_for(query_seed(distance))
         return crop_at(0, width, height)
 
 
-def test_an_interrupt_in_one_query_wins_over_an_ordinary_error_in_another():
-    ordinary = ValueError("an ordinary failure")
-    relocalizer = fitted(InterruptedOnCall(), FailsByQuery({0: ordinary, 1: KeyboardInterrupt()}))
+class ProposalsFailByQuery(ErrorsByQuery, CropSearch):
+    """The ask/tell form: the group's first round is one merged pass, then each
+    query is told its distances in turn."""
+
+    def propose(self, query):
+        yield [crop_at(0, query.width, query.height)]
+        self.raise_for(query.seed)
+        return crop_at(0, query.width, query.height)
+
+
+@pytest.mark.parametrize("form", [FailsByQuery, ProposalsFailByQuery], ids=["search", "propose"])
+def test_an_error_in_a_querys_search_ends_the_group_with_the_first_querys_error(form):
+    backbone = InterruptedOnCall()
+    relocalizer = fitted(backbone, form({0: KeyboardInterrupt()}))
     before = threading.active_count()
     with pytest.raises(KeyboardInterrupt):
         relocalizer.localize_many(QUERIES, queries_at_once=4)
     assert threading.active_count() == before
-    # Ordinary errors alone: still the first query's, whatever the timing.
-    relocalizer.crop = FailsByQuery({2: RuntimeError("later"), 0: ordinary})
-    with pytest.raises(ValueError, match="ordinary"):
+    # Errors in several queries: the first query's, raised where it happens.
+    relocalizer = fitted(backbone, form({2: RuntimeError("later"), 0: ValueError("first")}))
+    with pytest.raises(ValueError, match="first"):
         relocalizer.localize_many(QUERIES, queries_at_once=4)
-
-
-def test_a_cancelled_lockstep_releases_waiting_members_and_refuses_later_asks():
-    from relocfw.core.lockstep import Cancelled  # here: the old code lacks it
-
-    lockstep = Lockstep(2, lambda requests: list(requests))
-    outcome = {}
-
-    def member():
-        try:
-            lockstep.ask(0, "waits for member 1, which never asks")
-        except Cancelled:
-            outcome["cancelled"] = True
-
-    thread = threading.Thread(target=member)
-    thread.start()
-    time.sleep(0.1)
-    lockstep.cancel()
-    thread.join(PROMPT_SECONDS)
-    assert outcome == {"cancelled": True} and not thread.is_alive()
-    with pytest.raises(Cancelled):
-        lockstep.ask(1, "too late")
+    assert threading.active_count() == before
 
 
 def test_ctrl_c_ends_the_command_with_one_line_and_status_130(monkeypatch, capsys):

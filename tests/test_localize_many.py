@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import ConfigError, Relocalizer
+from relocfw import ConfigError, QueryOptions, Relocalizer
 from relocfw.core.interfaces import CropSearch, crop_at
-from relocfw.core.lockstep import Lockstep
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.plugins.centre_crop import CentreCrop
@@ -60,7 +59,8 @@ def assert_same(many, single):
 def test_batched_answers_equal_one_at_a_time(scene, crop, scoring):
     train, test = scene
     backbone = BatchRecorder()
-    relocalizer = Relocalizer(backbone, KMeansIndex(k=4), crop, scoring=scoring, batch_size=256)
+    options = QueryOptions(scoring=scoring, batch_size=256)
+    relocalizer = Relocalizer(backbone, KMeansIndex(k=4), crop, options)
     relocalizer.fit(train)
     backbone.batches.clear()
     single = [relocalizer.localize(image) for image in test]
@@ -79,7 +79,7 @@ def test_groups_and_sampling_match_one_at_a_time(scene):
     backbone = BatchRecorder(mc_samples=6, dropout_variant="kendall")
     backbone.set_crop_scale(1.5)
     relocalizer = Relocalizer(
-        backbone, ExhaustiveIndex(), GeneticCropSearch(seed=1), crop_samples=4
+        backbone, ExhaustiveIndex(), GeneticCropSearch(seed=1), QueryOptions(crop_samples=4)
     )
     relocalizer.fit(train)
     single = [relocalizer.localize(image) for image in test]
@@ -89,14 +89,25 @@ def test_groups_and_sampling_match_one_at_a_time(scene):
 
 
 class Failing(CropSearch):
+    """The older, blocking form: its queries run one at a time."""
+
     def search(self, width, height, distance):
         distance([crop_at(0, width, height)])
         raise ValueError("search failed on purpose")
 
 
-def test_a_failing_search_fails_the_call_and_leaves_no_thread_behind(scene):
+class FailingProposals(CropSearch):
+    """The ask/tell form: fails after its first round, inside the group's loop."""
+
+    def propose(self, query):
+        yield [crop_at(0, query.width, query.height)]
+        raise ValueError("search failed on purpose")
+
+
+@pytest.mark.parametrize("search", [Failing, FailingProposals], ids=["search", "propose"])
+def test_a_failing_search_fails_the_call_and_leaves_no_thread_behind(scene, search):
     train, test = scene
-    relocalizer = Relocalizer(BatchRecorder(), ExhaustiveIndex(), Failing())
+    relocalizer = Relocalizer(BatchRecorder(), ExhaustiveIndex(), search())
     relocalizer.fit(train)
     before = threading.active_count()
     with pytest.raises(ValueError, match="on purpose"):
@@ -106,91 +117,30 @@ def test_a_failing_search_fails_the_call_and_leaves_no_thread_behind(scene):
 
 def test_impossible_group_size_is_refused(scene):
     relocalizer = Relocalizer(BatchRecorder(), ExhaustiveIndex(), CentreCrop())
-    with pytest.raises(ConfigError, match="queries_at_once must be an integer >= 1"):
+    with pytest.raises(ConfigError, match="queries_at_once must be at least 1, got 0"):
         relocalizer.localize_many(scene[1], queries_at_once=0)
-    with pytest.raises(ConfigError, match="queries_at_once must be an integer >= 1"):
-        Relocalizer(BatchRecorder(), ExhaustiveIndex(), CentreCrop(), queries_at_once=2.5)
-
-
-def test_lockstep_waits_for_every_running_member_then_answers_all_at_once():
-    merged = []
-
-    def together(requests):
-        merged.append(sorted(requests))
-        return [r * 10 for r in requests]
-
-    lockstep = Lockstep(3, together)
-    results = {}
-
-    def member(m, asks):
-        for value in asks:
-            results.setdefault(m, []).append(lockstep.ask(m, value))
-        lockstep.leave(m)
-
-    threads = [
-        threading.Thread(target=member, args=(0, [1, 2])),
-        threading.Thread(target=member, args=(1, [3])),
-        threading.Thread(target=member, args=(2, [4, 5])),
-    ]
-    for thread in threads:
-        thread.start()
-    lockstep.serve()  # returns once every member has left
-    for thread in threads:
-        thread.join()
-    assert results == {0: [10, 20], 1: [30], 2: [40, 50]}
-    # Round one has all three; member 1 then leaves and round two has the other two.
-    assert merged == [[1, 3, 4], [2, 5]] and lockstep.calls == 2
-
-
-def test_lockstep_runs_every_call_on_the_serving_thread_and_hands_errors_back():
-    ran_on = []
-
-    def together(requests):
-        ran_on.append(threading.get_ident())
-        return [r + 1 for r in requests]
-
-    def solo(value):
-        ran_on.append(threading.get_ident())
-        if value < 0:
-            raise ValueError("negative")
-        return value * 2
-
-    lockstep = Lockstep(2, together)
-    results, errors = {}, {}
-
-    def member(m, value):
-        try:
-            doubled = lockstep.call(m, lambda: solo(value))
-            results[m] = lockstep.ask(m, doubled)
-        except ValueError as error:
-            errors[m] = str(error)
-        finally:
-            lockstep.leave(m)
-
-    threads = [threading.Thread(target=member, args=(m, v)) for m, v in ((0, 3), (1, -1))]
-    for thread in threads:
-        thread.start()
-    lockstep.serve()
-    for thread in threads:
-        thread.join()
-    assert results == {0: 7} and errors == {1: "negative"}
-    assert set(ran_on) == {threading.get_ident()} and len(ran_on) == 3
+    with pytest.raises(ConfigError, match="queries_at_once must be an integer, got 2.5"):
+        Relocalizer(
+            BatchRecorder(), ExhaustiveIndex(), CentreCrop(), QueryOptions(queries_at_once=2.5)
+        )
 
 
 def test_batched_seconds_include_sampling_and_leave_the_backbone_and_rng_alone(scene, monkeypatch):
     import time
 
+    from relocfw.core import pipeline
+
     train, test = scene
     backbone = BatchRecorder(mc_samples=4)
     relocalizer = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop())
     relocalizer.fit(train)
-    sampled = relocalizer._sampled_answer
+    sampled = pipeline.sampled_answer  # what Relocalizer.answer samples the chosen crop with
 
     def slow(*args):
         time.sleep(0.05)
         return sampled(*args)
 
-    monkeypatch.setattr(relocalizer, "_sampled_answer", slow)
+    monkeypatch.setattr(pipeline, "sampled_answer", slow)
     torch.manual_seed(9)
     expected = torch.rand(2)
     torch.manual_seed(9)

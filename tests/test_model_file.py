@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import Relocalizer
+from relocfw import QueryOptions, Relocalizer
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.model.model_file import load_model, save_model
+from relocfw.model.model_file import MODEL_FORMAT, load_model, save_model
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.kmeans_index import KMeansIndex
@@ -59,10 +59,10 @@ def assert_same_answers(got, expected):
 def test_retrieval_model_round_trip_answers_with_the_same_map_poses(scene, tmp_path):
     frames, train, test = scene
     backbone, options = tiny_backbone()
-    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), retrieval_k=2)
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), QueryOptions(retrieval_k=2))
     relocalizer.fit(train, [f.pose for f in frames])
     loaded = round_trip(relocalizer, {"backbone": options}, tmp_path)
-    assert loaded.retrieval_k == 2
+    assert loaded.options.retrieval_k == 2
     assert len(loaded.map_poses) == len(frames)
     for saved, original in zip(loaded.map_poses, frames, strict=True):
         assert np.allclose(saved.position, original.pose.position, rtol=0, atol=1e-12)
@@ -81,18 +81,17 @@ def test_retrieval_model_round_trip_answers_with_the_same_map_poses(scene, tmp_p
 def test_mc_sampling_model_round_trip_gives_the_same_poses_and_spreads(scene, tmp_path):
     frames, train, test = scene
     backbone, options = tiny_backbone(mc_samples=8)
-    relocalizer = Relocalizer(backbone, KMeansIndex(k=3), CentreCrop(), sample_seed=7)
+    relocalizer = Relocalizer(backbone, KMeansIndex(k=3), CentreCrop(), QueryOptions(sample_seed=7))
     relocalizer.fit(train)
     loaded = round_trip(relocalizer, {"backbone": options, "index": {"k": 3}}, tmp_path)
-    assert loaded.backbone.mc_samples == 8 and loaded.sample_seed == 7
+    assert loaded.backbone.mc_samples == 8 and loaded.options.sample_seed == 7
     expected = answers(relocalizer, test)
     assert all(np.isfinite(a.position_spread) and a.position_spread > 0 for a in expected)
     # The sample seed travels with the model file; torch's global stream plays no part.
     torch.manual_seed(123)
     assert_same_answers(answers(loaded, test), expected)
     # Sampling is live: another sample seed moves the answers.
-    loaded.sample_seed = 8
-    other = answers(loaded, test)
+    other = answers(loaded.replace(options=loaded.options.replace(sample_seed=8)), test)
     assert not np.allclose(other[0].pose.position, expected[0].pose.position)
 
 
@@ -106,3 +105,83 @@ def test_a_model_trained_on_posenet_crops_is_loaded_with_its_crop_scale(scene, t
     loaded = round_trip(relocalizer, {"backbone": options}, tmp_path)
     assert loaded.crop_scale == pytest.approx(256 / 224)
     assert_same_answers(answers(loaded, test_images), expected)
+
+
+# Every QueryOptions field away from its default, over two models (retrieval cannot
+# be combined with sampling): a model file must give each of them back.
+STORED_OPTIONS = {
+    "sampling": QueryOptions(
+        batch_size=7, scoring="shared", rerank=3, crop_samples=3, sample_seed=5, queries_at_once=3
+    ),
+    "retrieval": QueryOptions(batch_size=5, retrieval_k=2, queries_at_once=2),
+}
+
+
+def fitted_with(options: QueryOptions, scene) -> tuple[Relocalizer, dict]:
+    frames, train, _ = scene
+    backbone, backbone_options = tiny_backbone()
+    backbone.set_crop_scale(1.5)  # crop sampling needs windows smaller than the crop
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), options)
+    relocalizer.fit(train, [f.pose for f in frames])
+    return relocalizer, {"backbone": backbone_options}
+
+
+@pytest.mark.parametrize("name", STORED_OPTIONS)
+def test_format_3_stores_and_gives_back_every_query_option(scene, tmp_path, name):
+    defaults = QueryOptions().as_dict()
+    changed_somewhere = {
+        key
+        for other in STORED_OPTIONS.values()
+        for key, value in other.as_dict().items()
+        if value != defaults[key]
+    }
+    assert changed_somewhere == set(defaults)  # no field is tested at its default only
+    options = STORED_OPTIONS[name]
+    relocalizer, parts = fitted_with(options, scene)
+    path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
+    payload = torch.load(path, weights_only=True)
+    assert payload["format"] == MODEL_FORMAT == 3
+    assert payload["query"] == options.as_dict()
+    loaded = load_model(path)
+    assert loaded.options == options
+    assert_same_answers(answers(loaded, scene[2]), answers(relocalizer, scene[2]))
+    # An override changes its own field only; None keeps the file's value.
+    changed = load_model(path, overrides={"queries_at_once": 4, "batch_size": None})
+    assert changed.options == options.replace(queries_at_once=4)
+
+
+def as_format_2(path, tmp_path, **stored) -> object:
+    """The model file at `path` rewritten as format 2 wrote it: the query options it
+    knew at the top level, no "query" mapping."""
+    payload = torch.load(path, weights_only=True)
+    del payload["query"]
+    payload.update(format=2, **stored)
+    old = tmp_path / "format2.relocfw"
+    torch.save(payload, old)
+    return old
+
+
+@pytest.mark.parametrize(
+    "stored",
+    [
+        {"retrieval_k": 2, "crop_samples": 0, "sample_seed": 0, "rerank": 1},
+        {"retrieval_k": 0, "crop_samples": 3, "sample_seed": 4, "rerank": 2},
+    ],
+    ids=["retrieval", "sampling"],
+)
+def test_a_format_2_model_file_still_loads_with_its_query_options(scene, tmp_path, stored):
+    rerank = stored["rerank"]
+    # The options format 2 stored, with plain scoring (which it did not store): a
+    # re-ranking count only means something when shared scoring is asked for.
+    expected = QueryOptions(**{**stored, "rerank": 1})
+    relocalizer, parts = fitted_with(expected, scene)
+    path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
+    old = as_format_2(path, tmp_path, **stored)
+    loaded = load_model(old)
+    assert loaded.options == expected
+    assert loaded.metadata == {"scene": "tiny"}
+    assert len(loaded.map_poses) == len(scene[0])
+    assert_same_answers(answers(loaded, scene[2]), answers(relocalizer, scene[2]))
+    # With shared scoring asked for, the stored re-ranking count comes back too.
+    shared = load_model(old, overrides={"scoring": "shared"})
+    assert shared.options == expected.replace(scoring="shared", rerank=rerank)

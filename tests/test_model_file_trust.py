@@ -156,8 +156,8 @@ def test_a_registered_third_party_plugin_still_loads(tmp_path):
     options = {**OPTIONS, "crop": {"points": 3, "shrink": 2.0}}
     path = save_model(tmp_path / "model.relocfw", relocalizer, options, {})
     loaded = load_model(path)
-    assert type(loaded.crop) is search.CoarseToFineCrop
-    assert (loaded.crop.points, loaded.crop.shrink) == (3, 2.0)
+    assert type(loaded.search) is search.CoarseToFineCrop
+    assert (loaded.search.points, loaded.search.shrink) == (3, 2.0)
     image = np.full((36, 48, 3), 90, np.uint8)
     assert loaded.localize(image).crop == relocalizer.localize(image).crop
 
@@ -179,7 +179,9 @@ def test_the_cli_refuses_a_crafted_model_file_in_one_line(saved_payload, tmp_pat
         **{"class": "os.system", "options": {"command": f"touch {marker}"}},
     )
     assert cv2.imwrite(str(tmp_path / "query.png"), np.zeros((36, 48, 3), np.uint8))
-    result = relocfw(["task=localize", f"model={path}", "images=query.png"], tmp_path)
+    result = relocfw(
+        ["task=localize", f"localize.model={path}", "localize.images=query.png"], tmp_path
+    )
     assert result.returncode == 2, result.stdout
     assert not marker.exists()
     (line,) = result.stderr.strip().splitlines()

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import Crop, Relocalizer
+from relocfw import Crop, QueryOptions, Relocalizer
 from relocfw.core.imaging import Strip
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
@@ -50,13 +50,15 @@ def test_ga_scores_one_batch_per_generation_and_never_twice(scene_images):
 
 def test_sweep_picks_the_window_with_the_smallest_distance(scene_images):
     train, test = scene_images
-    relocalizer = Relocalizer(CountingPoseNet(), ExhaustiveIndex(), SweepCrop(), batch_size=5)
+    relocalizer = Relocalizer(
+        CountingPoseNet(), ExhaustiveIndex(), SweepCrop(), QueryOptions(batch_size=5)
+    )
     relocalizer.fit(train)
     image = test[1]
     strip = Strip(image, 32)
     windows = sorted({strip.window(Crop(x, 0, 36)) for x in range(13)})
     batch = torch.stack([strip.cut(w) for w in windows])
-    features = relocalizer._forward(batch).features
+    features = relocalizer.scorer.forward(batch).features
     distances = relocalizer.index.distance(features)
     answer = relocalizer.localize(image)
     assert strip.window(answer.crop) == windows[int(np.argmin(distances))]

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import Relocalizer
+from relocfw import QueryOptions, Relocalizer
 from relocfw.core.errors import ConfigError
 from relocfw.core.interfaces import Backbone
 from relocfw.core.values import Pose, PoseOutput
@@ -39,7 +39,9 @@ def toy_map():
 
 def test_retrieval_answers_with_the_nearest_training_pose():
     images, poses = toy_map()
-    relocalizer = Relocalizer(MeanColour(), ExhaustiveIndex(), CentreCrop(), retrieval_k=1)
+    relocalizer = Relocalizer(
+        MeanColour(), ExhaustiveIndex(), CentreCrop(), QueryOptions(retrieval_k=1)
+    )
     relocalizer.fit(images, poses)
     answer = relocalizer.localize(flat((10, 240, 5)))
     assert np.allclose(answer.pose.position, [0, 2, 0])
@@ -48,7 +50,9 @@ def test_retrieval_answers_with_the_nearest_training_pose():
 
 def test_retrieval_k_weights_by_distance():
     images, poses = toy_map()
-    relocalizer = Relocalizer(MeanColour(), ExhaustiveIndex(), CentreCrop(), retrieval_k=2)
+    relocalizer = Relocalizer(
+        MeanColour(), ExhaustiveIndex(), CentreCrop(), QueryOptions(retrieval_k=2)
+    )
     relocalizer.fit(images, poses)
     # Halfway between red and green in colour: halfway between their positions.
     answer = relocalizer.localize(flat((125, 125, 0)))
@@ -67,9 +71,11 @@ def test_without_retrieval_the_network_pose_is_used():
 
 def test_retrieval_needs_neighbours_and_poses():
     with pytest.raises(ConfigError, match="index=exhaustive"):
-        Relocalizer(MeanColour(), KMeansIndex(k=2), CentreCrop(), retrieval_k=1)
+        Relocalizer(MeanColour(), KMeansIndex(k=2), CentreCrop(), QueryOptions(retrieval_k=1))
     images, _ = toy_map()
-    relocalizer = Relocalizer(MeanColour(), ExhaustiveIndex(), CentreCrop(), retrieval_k=1)
+    relocalizer = Relocalizer(
+        MeanColour(), ExhaustiveIndex(), CentreCrop(), QueryOptions(retrieval_k=1)
+    )
     with pytest.raises(Exception, match="pose of every map image"):
         relocalizer.fit(images)
 

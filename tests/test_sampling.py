@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import Crop, Relocalizer
+from relocfw import Crop, QueryOptions, Relocalizer
 from relocfw.core.errors import ConfigError
 from relocfw.core.imaging import Strip, image_fingerprint
 from relocfw.core.sampling import combine_samples, query_streams, random_windows
@@ -67,7 +67,9 @@ def test_the_map_and_the_candidates_are_scored_dropout_free_and_the_choice_sampl
 
 def test_a_querys_samples_do_not_depend_on_what_ran_before(scene_images):
     train, test = scene_images
-    relocalizer = Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), crop_samples=6)
+    relocalizer = Relocalizer(
+        SamplesSeen(), ExhaustiveIndex(), CentreCrop(), QueryOptions(crop_samples=6)
+    )
     relocalizer.fit(train)
     first = relocalizer.localize(test[1])
     torch.rand(100)  # the caller's stream moves on...
@@ -76,7 +78,10 @@ def test_a_querys_samples_do_not_depend_on_what_ran_before(scene_images):
     assert np.array_equal(first.pose.position, again.pose.position)
     assert first.position_spread == again.position_spread
     other_seed = Relocalizer(
-        relocalizer.backbone, relocalizer.index, CentreCrop(), crop_samples=6, sample_seed=1
+        relocalizer.backbone,
+        relocalizer.index,
+        CentreCrop(),
+        QueryOptions(crop_samples=6, sample_seed=1),
     ).localize(test[1])
     assert not np.array_equal(first.pose.position, other_seed.pose.position)
 
@@ -95,7 +100,9 @@ def test_sampling_leaves_the_callers_random_stream_alone(scene_images):
 def test_crop_sampling_alone_answers_with_the_mean_of_its_windows(scene_images):
     train, test = scene_images
     backbone = SamplesSeen(samples=0)
-    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop(), crop_samples=5)
+    relocalizer = Relocalizer(
+        backbone, ExhaustiveIndex(), CentreCrop(), QueryOptions(crop_samples=5)
+    )
     relocalizer.fit(train)
     backbone.calls.clear()
     answer = relocalizer.localize(test[2])
@@ -106,7 +113,7 @@ def test_crop_sampling_alone_answers_with_the_mean_of_its_windows(scene_images):
     strip = Strip(test[2], 32, 1.5)
     windows_rng, _ = query_streams(0, image_fingerprint(test[2]))
     corners = random_windows(strip, answer.crop, 5, windows_rng)
-    windows = relocalizer._forward(torch.stack([strip.cut(c) for c in corners]))
+    windows = relocalizer.scorer.forward(torch.stack([strip.cut(c) for c in corners]))
     position, _, spread, _ = combine_samples(windows.positions, windows.quaternions)
     assert np.allclose(answer.pose.position, position)
     assert answer.position_spread == pytest.approx(spread) and spread > 0
@@ -115,7 +122,9 @@ def test_crop_sampling_alone_answers_with_the_mean_of_its_windows(scene_images):
 def test_crop_sampling_with_dropout_gives_each_window_one_mask(scene_images):
     train, test = scene_images
     backbone = SamplesSeen(samples=40)
-    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop(), crop_samples=7)
+    relocalizer = Relocalizer(
+        backbone, ExhaustiveIndex(), CentreCrop(), QueryOptions(crop_samples=7)
+    )
     relocalizer.fit(train)
     backbone.calls.clear()
     answer = relocalizer.localize(test[0])
@@ -137,17 +146,22 @@ def test_random_windows_stay_inside_the_chosen_crop():
 
 
 def test_impossible_sampling_options_are_refused():
-    with pytest.raises(ConfigError, match="crop_samples must be >= 0"):
-        Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), crop_samples=-1)
+    with pytest.raises(ConfigError, match="crop_samples must be at least 0, got -1"):
+        Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), QueryOptions(crop_samples=-1))
     with pytest.raises(ConfigError, match="retrieval_k > 0 answers with map images' poses"):
-        Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), retrieval_k=1)
+        Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), QueryOptions(retrieval_k=1))
 
 
 def test_crop_sampling_is_refused_for_a_model_whose_window_fills_the_crop():
     with pytest.raises(ConfigError, match="the window fills the crop"):
-        Relocalizer(SamplesSeen(crop_scale=1.0), ExhaustiveIndex(), CentreCrop(), crop_samples=4)
-    with pytest.raises(ConfigError, match="sample_seed must be an integer >= 0"):
-        Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), sample_seed=-1)
+        Relocalizer(
+            SamplesSeen(crop_scale=1.0),
+            ExhaustiveIndex(),
+            CentreCrop(),
+            QueryOptions(crop_samples=4),
+        )
+    with pytest.raises(ConfigError, match="sample_seed must be at least 0, got -1"):
+        Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), QueryOptions(sample_seed=-1))
 
 
 def test_the_sampling_streams_are_not_the_crop_searchs():

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import ConfigError, Relocalizer
+from relocfw import ConfigError, QueryOptions, Relocalizer
 from relocfw.core.imaging import Strip
 from relocfw.core.interfaces import Backbone
 from relocfw.core.values import PoseOutput
@@ -73,7 +73,7 @@ def test_a_square_image_gives_the_plain_descriptor():
 
 def fitted(scoring: str, crop, scene) -> Relocalizer:
     train, _ = scene
-    relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), crop, scoring=scoring)
+    relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), crop, QueryOptions(scoring=scoring))
     relocalizer.fit(train)
     return relocalizer
 
@@ -95,7 +95,7 @@ def test_shared_ga_answers_with_the_plain_pose_of_its_crop(scene):
     image = scene[1][0]
     answer = shared.localize(image)
     strip = Strip(image, 32)
-    exact = plain._forward(strip.cut(strip.window(answer.crop))[None])
+    exact = plain.scorer.forward(strip.cut(strip.window(answer.crop))[None])
     assert np.allclose(answer.pose.position, exact.positions[0], atol=1e-6)
     assert np.allclose(answer.pose.quaternion, exact.quaternions[0], atol=1e-6)
     # One trunk pass over the 43x32 strip plus the chosen crop's plain pass.
@@ -110,13 +110,13 @@ def test_centre_crop_never_runs_the_strip(scene):
 
 def test_unknown_scoring_and_backbones_without_the_hooks_are_refused():
     with pytest.raises(ConfigError, match="scoring must be one of plain, shared"):
-        Relocalizer(tiny_posenet(), KMeansIndex(k=4), CentreCrop(), scoring="fast")
+        Relocalizer(tiny_posenet(), KMeansIndex(k=4), CentreCrop(), QueryOptions(scoring="fast"))
 
     class PlainOnly(BoxFilter):
         feature_maps = Backbone.feature_maps
 
     with pytest.raises(ConfigError, match="PlainOnly lacks them"):
-        Relocalizer(PlainOnly(), KMeansIndex(k=4), CentreCrop(), scoring="shared")
+        Relocalizer(PlainOnly(), KMeansIndex(k=4), CentreCrop(), QueryOptions(scoring="shared"))
 
 
 def test_a_window_inside_both_axes_pools_exactly_its_cells():
@@ -145,21 +145,22 @@ def test_shared_ga_with_a_crop_scale_answers_with_the_plain_pose_of_its_crop(sce
     for backbone in backbones:
         backbone.set_crop_scale(256 / 224)  # as training with train.crop_scale does
     shared = Relocalizer(
-        backbones[0], KMeansIndex(k=4), GeneticCropSearch(seed=0), scoring="shared"
+        backbones[0], KMeansIndex(k=4), GeneticCropSearch(seed=0), QueryOptions(scoring="shared")
     )
     shared.fit(train)
     plain = Relocalizer(backbones[1], KMeansIndex(k=4), CentreCrop())
     answer = shared.localize(test[0])
     strip = Strip(test[0], 32, 256 / 224)
-    exact = plain._forward(strip.cut(strip.window(answer.crop))[None])
+    exact = plain.scorer.forward(strip.cut(strip.window(answer.crop))[None])
     assert np.allclose(answer.pose.position, exact.positions[0], atol=1e-6)
     assert np.allclose(answer.pose.quaternion, exact.quaternions[0], atol=1e-6)
-    assert shared._window_cells() == 1  # a 32-pixel input gives 1 x 1 maps
+    assert shared.scorer.window_cells() == 1  # a 32-pixel input gives 1 x 1 maps
 
 
 def fitted_with(scoring: str, crop, scene, **options) -> Relocalizer:
     """Fitted with the same backbone weights as `fitted` (tiny_posenet is seeded)."""
-    relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), crop, scoring=scoring, **options)
+    options = QueryOptions(scoring=scoring, **options)
+    relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), crop, options)
     relocalizer.fit(scene[0])
     return relocalizer
 
@@ -184,7 +185,10 @@ def test_re_scoring_every_window_makes_the_shared_sweep_the_plain_sweep(scene):
 def test_re_scoring_runs_the_best_shared_windows_in_one_plain_batch(scene):
     backbone = tiny_posenet()
     relocalizer = Relocalizer(
-        backbone, KMeansIndex(k=4), GeneticCropSearch(seed=0), scoring="shared", rerank=3
+        backbone,
+        KMeansIndex(k=4),
+        GeneticCropSearch(seed=0),
+        QueryOptions(scoring="shared", rerank=3),
     )
     relocalizer.fit(scene[0])
     answer = relocalizer.localize(scene[1][0])
@@ -196,34 +200,40 @@ def test_re_scoring_runs_the_best_shared_windows_in_one_plain_batch(scene):
     "scoring, rerank, message",
     [
         ("plain", 2, "with scoring=plain every candidate is already plain"),
-        ("shared", 0, "rerank must be an integer >= 1"),
+        ("shared", 0, "rerank must be at least 1, got 0"),
     ],
 )
 def test_impossible_rerank_options_are_refused(scoring, rerank, message):
     with pytest.raises(ConfigError, match=message):
-        Relocalizer(tiny_posenet(), KMeansIndex(k=4), CentreCrop(), scoring=scoring, rerank=rerank)
+        Relocalizer(
+            tiny_posenet(),
+            KMeansIndex(k=4),
+            CentreCrop(),
+            QueryOptions(scoring=scoring, rerank=rerank),
+        )
 
 
 class RecordingGA(GeneticCropSearch):
     """The GA, remembering the crop it returned."""
 
-    def search(self, width, height, distance):
-        self.returned = super().search(width, height, distance)
+    def propose(self, query):
+        self.returned = yield from super().propose(query)
         return self.returned
 
 
 def test_re_scoring_keeps_the_searchs_choice_among_the_candidates(scene, monkeypatch):
     search = RecordingGA(seed=0)
-    relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), search, scoring="shared", rerank=3)
+    options = QueryOptions(scoring="shared", rerank=3)
+    relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), search, options)
     relocalizer.fit(scene[0])
     plain_batches = []
-    score = relocalizer._score_corners
+    score = relocalizer.scorer.plain
 
     def recording(strip, corners):
         plain_batches.append(list(corners))
         return score(strip, corners)
 
-    monkeypatch.setattr(relocalizer, "_score_corners", recording)
+    monkeypatch.setattr(relocalizer.scorer, "plain", recording)
     image = scene[1][0]
     answer = relocalizer.localize(image)
     strip = Strip(image, 32)

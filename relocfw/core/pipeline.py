@@ -31,7 +31,7 @@ from relocfw.core.retrieval import check_retrieval, retrieved_pose
 from relocfw.core.sampled_answer import sampled_answer, samples_answer
 from relocfw.core.sampling import configured_samples
 from relocfw.core.scorer import Scorer
-from relocfw.core.search_loop import search_together
+from relocfw.core.search_loop import score_chosen_together, search_together
 from relocfw.core.values import Crop, Localization, Pose
 
 
@@ -133,12 +133,20 @@ class Relocalizer:
         return self.scorer.crop_scale
 
     def replace(
-        self, backbone: Backbone | None = None, options: QueryOptions | None = None
+        self,
+        backbone: Backbone | None = None,
+        options: QueryOptions | None = None,
+        search: CropSearch | None = None,
     ) -> Relocalizer:
         """This pipeline with another network answering for the same one (e.g. its ONNX
-        export) and/or other options: the same fitted map, search and metadata."""
+        export), other options and/or another search: the same fitted map, map poses
+        and metadata."""
         swapped = Relocalizer(
-            backbone or self.backbone, self.index, self.search, options or self.options, self.device
+            backbone or self.backbone,
+            self.index,
+            search or self.search,
+            options or self.options,
+            self.device,
         )
         swapped.map_poses = self.map_poses
         swapped.metadata = self.metadata
@@ -250,6 +258,7 @@ class Relocalizer:
             started = time.perf_counter()
             queries = [QueryWindows(image, self.scorer, self.options.scoring) for image in group]
             crops = search_together(self.search, queries)
+            score_chosen_together(queries, crops, self.options.rerank)
             found = [self.answer(q, c) for q, c in zip(queries, crops, strict=True)]
             seconds = (time.perf_counter() - started) / len(group)
             answers += [dataclasses.replace(a, seconds=seconds) for a in found]

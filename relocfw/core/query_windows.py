@@ -98,21 +98,27 @@ class QueryWindows:
             self.score_plain(corners)
         return self.distances(corners)
 
+    def rerank_candidates(self, chosen: Crop, count: int) -> list[Corner]:
+        """The windows `rerank` compares: the chosen one first, then the best shared ones."""
+        corner = self.strip.window(chosen)
+        if count <= 1 or not self.shared:
+            return [corner]
+        ranked = sorted(self.shared, key=self.shared.__getitem__)
+        return list(dict.fromkeys([corner, *ranked]))[:count]
+
     def rerank(self, chosen: Crop, count: int) -> Crop:
         """With shared scoring, the best of the `count` best shared windows by plain
         distance (the search's own choice always among them); `chosen` otherwise.
 
         The shared distances only rank: the candidates go through the plain network
-        in one batch.
+        in one batch (with other queries' in `localize_many`, scored beforehand).
         """
-        if count <= 1 or not self.shared:
+        candidates = self.rerank_candidates(chosen, count)
+        if len(candidates) == 1:
             return chosen
-        corner = self.strip.window(chosen)
-        ranked = sorted(self.shared, key=self.shared.__getitem__)
-        candidates = list(dict.fromkeys([corner, *ranked]))[:count]
         self.score_plain(candidates)
         best = min(candidates, key=lambda c: self.plain[c][0])
-        return chosen if best == corner else self.crop_of[best]
+        return chosen if best == candidates[0] else self.crop_of[best]
 
     def answer_of(self, crop: Crop) -> tuple[float, NetworkAnswers]:
         """The plain distance and answer of `crop`'s window (scored here if need be)."""

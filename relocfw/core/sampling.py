@@ -23,6 +23,7 @@ from contextlib import contextmanager
 import numpy as np
 import torch
 
+from relocfw.core.geometry import mean_quaternion
 from relocfw.core.imaging import Strip
 from relocfw.core.interfaces import Backbone
 from relocfw.core.multiply_adds import multiply_adds
@@ -154,15 +155,16 @@ def combine_samples(
 
 
 def mean_quaternions(samples: torch.Tensor) -> torch.Tensor:
-    """[S, B, 4] -> [B, 4]: per batch item, the principal eigenvector of sum q q^T.
+    """[S, B, 4] -> [B, 4]: per batch item, the mean rotation of its S samples (w first,
+    w >= 0), in `samples`' dtype and on its device.
 
-    q and -q add the same outer product, so sign flips between samples cancel out
-    instead of averaging towards zero as a plain mean would.
+    relocfw.core.geometry.mean_quaternion's chordal mean, indifferent to the samples'
+    signs, computed in float64 on the CPU: B 4x4 eigenproblems, no slower there than
+    torch's own.
     """
-    outer = torch.einsum("sbi,sbj->bij", samples, samples)
-    _, vectors = torch.linalg.eigh(outer.double())
-    mean = vectors[..., -1].to(samples.dtype)
-    return torch.where(mean[:, :1] < 0, -mean, mean)
+    values = samples.detach().to("cpu", torch.float64).numpy()
+    means = mean_quaternion(np.swapaxes(values, 0, 1))
+    return torch.as_tensor(means, dtype=samples.dtype, device=samples.device)
 
 
 def sample_statistics(

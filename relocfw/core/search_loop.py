@@ -52,16 +52,30 @@ def search_together(search: CropSearch, queries: Sequence[QueryWindows]) -> list
     return [chosen[member] for member in range(len(queries))]
 
 
+def score_chosen_together(
+    queries: Sequence[QueryWindows], crops: Sequence[Crop], rerank: int
+) -> None:
+    """The plain windows every query's answer needs after its search (its chosen crop's
+    and, with shared scoring, its rerank candidates), in merged forward passes."""
+    pairs = enumerate(zip(queries, crops, strict=True))
+    needed = {member: query.rerank_candidates(crop, rerank) for member, (query, crop) in pairs}
+    score_plain_together(queries, needed)
+
+
 def score_round(queries: Sequence[QueryWindows], asked: dict[int, list]) -> None:
     """Score every window asked for this round that its query has not scored yet."""
     plain: dict[int, list] = {}
     for member, corners in asked.items():
         if queries[member].scoring == "shared":
             queries[member].score_shared(corners)
-            continue
-        new = queries[member].unscored(corners)
-        if new:
-            plain[member] = new
+        else:
+            plain[member] = corners
+    score_plain_together(queries, plain)
+
+
+def score_plain_together(queries: Sequence[QueryWindows], wanted: dict[int, list]) -> None:
+    """Plain windows of several queries, those not scored yet, in one merged pass."""
+    plain = {m: new for m, corners in wanted.items() if (new := queries[m].unscored(corners))}
     if not plain:
         return
     scorer = queries[next(iter(plain))].scorer
