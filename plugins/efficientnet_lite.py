@@ -9,17 +9,14 @@ Nothing is downloaded at run time.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
 
 import torch
-from torch import nn
 
 from relocfw.core.errors import ConfigError, DataError
-from relocfw.core.interfaces import Backbone
-from relocfw.core.options import integer_at_least, probability
-from relocfw.core.values import PoseOutput
 from relocfw.model.checkpoints import read_torch_file
-from relocfw.model.pose_head import PoseHead, dropout_variant_of
+from relocfw.model.dropout_backbone import Drop, DropoutBackbone, Maps
+from relocfw.model.dropout_backbone import pool as pool  # its old path
+from relocfw.model.pose_head import PoseHead
 
 INSTALL_HINT = 'pip install "relocfw[efficientnet]"'
 
@@ -33,7 +30,7 @@ def import_optional(module: str) -> object:
         ) from error
 
 
-class EfficientNetLite0(Backbone):
+class EfficientNetLite0(DropoutBackbone):
     """EfficientNet-Lite0 trunk (1280 channels) -> 2048-d descriptor -> pose.
 
     Args:
@@ -43,13 +40,13 @@ class EfficientNetLite0(Backbone):
         pretrained: start from the packaged ImageNet weights (transfer learning).
         mc_samples: Monte Carlo dropout samples at test time (0: off).
         dropout_variant: where dropout sits, in training and when sampling, as on
-            PoseNet: "head" (before the regressor only), "kendall" (also on the last
-            convolutional maps, before the pool) or "all" (after every MBConv block
-            and on the last maps). The layers below the first dropout run once per
+            PoseNet (relocfw.model.dropout_backbone): "head" (before the regressor
+            only), "kendall" (also on the last convolutional maps, before the pool)
+            or "all" (after every MBConv block and on the last maps). The layers
+            below the first dropout (the stem and the first block) run once per
             query when sampling.
     """
 
-    test_time_options = ("mc_samples",)
     rebuild_overrides = {"pretrained": False}
     # Models trained before dropout_variant existed are the head variant: keep their key.
     key_defaults = {"dropout_variant": "head"}
@@ -63,14 +60,7 @@ class EfficientNetLite0(Backbone):
         mc_samples: int = 0,
         dropout_variant: str = "head",
     ) -> None:
-        super().__init__()
-        self.input_size = integer_at_least("input_size", input_size, 32)
-        self.feature_dim = integer_at_least("feature_dim", feature_dim, 1)
-        if not 0 <= probability("dropout", dropout) < 1:
-            raise ConfigError(f"dropout must be in [0, 1), got {dropout}")
-        self.dropout_variant = dropout_variant_of(dropout_variant)
-        self.dropout_rate = float(dropout)
-        self.mc_samples = integer_at_least("mc_samples", mc_samples, 0)
+        super().__init__(input_size, feature_dim, dropout, mc_samples, dropout_variant)
         self.pretrained = bool(pretrained)
         architecture = import_optional("efficientnet_lite_pytorch")
         self.trunk = architecture.EfficientNet.from_name("efficientnet-lite0")
@@ -82,26 +72,23 @@ class EfficientNetLite0(Backbone):
             if missing or unexpected:
                 raise DataError(f"{path}: weights do not fit EfficientNet-Lite0 ({missing[:3]})")
         channels = self.trunk._conv_head.out_channels
-        self.head = PoseHead(channels, self.feature_dim, float(dropout))
+        self.head = PoseHead(channels, self.feature_dim, self.dropout_rate)
 
-    def forward(self, images: torch.Tensor) -> PoseOutput:
-        x = images * 2.0 - 1.0  # EfficientNet-Lite was trained on pixels in [-1, 1]
-        if not self.training and self.mc_samples > 0 and self.dropout_variant != "head":
-            return self.sampled_below_descriptor(x)
-        drop = self.drop if self.training and self.dropout_variant == "all" else None
-        maps = self.upper(self.lower(x), drop)
-        if self.training and self.dropout_variant == "kendall":
-            maps = self.drop(maps)
-        return self.head(pool(maps), self.to_world_positions, self.mc_samples)
+    def normalise(self, images: torch.Tensor) -> torch.Tensor:
+        return images * 2.0 - 1.0  # EfficientNet-Lite was trained on pixels in [-1, 1]
+
+    def trunk_lower(self, x: torch.Tensor) -> torch.Tensor:
+        return self.lower(x)
+
+    def trunk_upper(self, below: torch.Tensor, drop: Drop | None = None) -> Maps:
+        return (self.upper(below, drop),)
 
     def lower(self, x: torch.Tensor) -> torch.Tensor:
         """Stem and the first MBConv block: below every place a dropout can sit."""
         x = self.trunk._swish(self.trunk._bn0(self.trunk._conv_stem(x)))
         return self.block(0, x)
 
-    def upper(
-        self, x: torch.Tensor, drop: Callable[[torch.Tensor], torch.Tensor] | None = None
-    ) -> torch.Tensor:
+    def upper(self, x: torch.Tensor, drop: Drop | None = None) -> torch.Tensor:
         """The other blocks and the head convolution; `drop` after each, if given."""
         d = drop or (lambda t: t)
         x = d(x)
@@ -115,38 +102,3 @@ class EfficientNetLite0(Backbone):
         if rate:
             rate *= index / len(self.trunk._blocks)
         return self.trunk._blocks[index](x, drop_connect_rate=rate)
-
-    def drop(self, maps: torch.Tensor) -> torch.Tensor:
-        """Dropout that is on whenever it is called (training, or sampling at test time)."""
-        return nn.functional.dropout(maps, self.dropout_rate, training=True)
-
-    def sampled_below_descriptor(self, x: torch.Tensor) -> PoseOutput:
-        """Monte Carlo answers of the kendall / all variants (see PoseHead.sampled_above)."""
-        if self.dropout_variant == "kendall":
-            below = self.upper(self.lower(x))
-
-            def above(maps: torch.Tensor) -> torch.Tensor:
-                return pool(self.drop(maps))
-
-            clean = pool(below)
-        else:
-            below = self.lower(x)
-
-            def above(maps: torch.Tensor) -> torch.Tensor:
-                return pool(self.upper(maps, self.drop))
-
-            clean = pool(self.upper(below))
-        return self.head.sampled_above(
-            below, above, clean, self.to_world_positions, self.mc_samples
-        )
-
-    def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
-        return self.upper(self.lower(images * 2.0 - 1.0))
-
-    def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
-        return self.head.describe(pooled)
-
-
-def pool(maps: torch.Tensor) -> torch.Tensor:
-    """[n, C, h, w] -> [n, C] global average."""
-    return torch.flatten(nn.functional.adaptive_avg_pool2d(maps, 1), 1)

@@ -15,11 +15,12 @@ import torch
 from torch import nn
 
 from relocfw.core.errors import ConfigError, DataError
-from relocfw.core.interfaces import Backbone
-from relocfw.core.options import integer_at_least, probability, real_number
+from relocfw.core.options import real_number
 from relocfw.core.values import PoseOutput
 from relocfw.model.checkpoints import read_torch_file
-from relocfw.model.pose_head import PoseHead, PoseRegressor, dropout_variant_of
+from relocfw.model.dropout_backbone import Drop, DropoutBackbone, Maps
+from relocfw.model.dropout_backbone import pool as pool  # its old path, plugins.posenet.pool
+from relocfw.model.pose_head import PoseHead, PoseRegressor
 from relocfw.plugins.googlenet import ConvBnRelu, GoogLeNetTrunk, scaled
 
 # Input normalisation of a network trained here from scratch: ImageNet's statistics.
@@ -29,14 +30,6 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 # turns ImageNet-normalised input back into that), so its weights expect exactly that.
 TORCHVISION_GOOGLENET_MEAN = (0.5, 0.5, 0.5)
 TORCHVISION_GOOGLENET_STD = (0.5, 0.5, 0.5)
-# Where Monte Carlo dropout samples (Bayesian PoseNet, Kendall & Cipolla 2016):
-# head: only before the pose regressor (PoseNet's own dropout); linear above it, so the
-#   samples' mean is PoseNet's pose in expectation and the spread is a fixed function
-#   of the descriptor, not the model's doubt.
-# kendall: the released Bayesian PoseNet: also on inception 5b's output, before the
-#   average pool, so the samples differ in their descriptors.
-# all: after every inception block.
-# kendall and all drop in training too: they are different models (checkpoint key).
 # torchvision modules with no counterpart here: the ImageNet classifiers.
 DROPPED_PREFIXES = ("fc.", "aux1.fc2.", "aux2.fc2.")
 
@@ -56,7 +49,7 @@ class AuxiliaryHead(nn.Module):
         return self.pose(self.dropout(torch.relu(self.fc1(torch.flatten(x, 1)))))
 
 
-class PoseNet(Backbone):
+class PoseNet(DropoutBackbone):
     """GoogLeNet PoseNet (Kendall et al. 2015) with a 2048-d descriptor layer.
 
     Args:
@@ -70,12 +63,11 @@ class PoseNet(Backbone):
             not change the trained model, so it is not part of the checkpoint's key.
         dropout_variant: where dropout sits, in training and when sampling: "head"
             (before the regressor only), "kendall" (also on inception 5b's output) or
-            "all" (after every inception block); see DROPOUT_VARIANTS. The layers
-            below the first dropout run once per query, the rest once per sample,
-            all samples batched.
+            "all" (after every inception block); see relocfw.model.dropout_backbone.
+            The layers below the first dropout (the stem and inception 3a) run once
+            per query, the rest once per sample, all samples batched.
     """
 
-    test_time_options = ("mc_samples",)
     rebuild_overrides = {"weights": None}
 
     def __init__(
@@ -88,21 +80,14 @@ class PoseNet(Backbone):
         mc_samples: int = 0,
         dropout_variant: str = "head",
     ) -> None:
-        super().__init__()
-        self.input_size = integer_at_least("input_size", input_size, 32)
-        self.feature_dim = integer_at_least("feature_dim", feature_dim, 1)
+        super().__init__(input_size, feature_dim, dropout, mc_samples, dropout_variant)
         width = real_number("width", width)
         if not 0 < width <= 4:
             raise ConfigError(f"width must be in (0, 4], got {width}")
-        if not 0 <= probability("dropout", dropout) < 1:
-            raise ConfigError(f"dropout must be in [0, 1), got {dropout}")
-        self.dropout_variant = dropout_variant_of(dropout_variant)
-        self.dropout_rate = float(dropout)
         self.trunk = GoogLeNetTrunk(width)
         self.aux1 = AuxiliaryHead(self.trunk.aux_channels[0], width)
         self.aux2 = AuxiliaryHead(self.trunk.aux_channels[1], width)
-        self.head = PoseHead(self.trunk.out_channels, self.feature_dim, dropout)
-        self.mc_samples = integer_at_least("mc_samples", mc_samples, 0)
+        self.head = PoseHead(self.trunk.out_channels, self.feature_dim, self.dropout_rate)
         self.pretrained = bool(weights)
         # Persistent: the normalisation belongs to the weights, so it travels with every
         # checkpoint and model file (a rebuilt model never reloads the weights file).
@@ -113,58 +98,24 @@ class PoseNet(Backbone):
                 raise ConfigError("backbone.weights needs width=1.0 (ImageNet GoogLeNet)")
             load_imagenet_weights(self, Path(weights))
 
-    def forward(self, images: torch.Tensor) -> PoseOutput:
-        x = (images - self.mean) / self.std
-        if not self.training and self.mc_samples > 0 and self.dropout_variant != "head":
-            return self.sampled_below_descriptor(x)
-        drop = self.drop if self.training and self.dropout_variant == "all" else None
-        at_4a, at_4d, at_5b = self.trunk(x, drop)
-        if self.training and self.dropout_variant == "kendall":
-            at_5b = self.drop(at_5b)
-        pooled = torch.flatten(nn.functional.adaptive_avg_pool2d(at_5b, 1), 1)
-        output = self.head(pooled, self.to_world_positions, self.mc_samples)
-        if not self.training:
-            return output
+    def normalise(self, images: torch.Tensor) -> torch.Tensor:
+        return (images - self.mean) / self.std
+
+    def trunk_lower(self, x: torch.Tensor) -> torch.Tensor:
+        return self.trunk.lower(x)  # the stem and inception 3a
+
+    def trunk_upper(self, below: torch.Tensor, drop: Drop | None = None) -> Maps:
+        return self.trunk.upper(below, drop)  # inception 4a's, 4d's and 5b's maps
+
+    def trunk_maps(self, x: torch.Tensor, drop: Drop | None = None) -> Maps:
+        return self.trunk(x, drop)  # the module, so hooks on the trunk see the pass
+
+    def training_output(self, output: PoseOutput, maps: Maps) -> PoseOutput:
+        at_4a, at_4d, _ = maps
         auxiliary = tuple(
             (self.to_world_positions(p), q) for p, q in (self.aux1(at_4a), self.aux2(at_4d))
         )
         return dataclasses.replace(output, auxiliary=auxiliary)
-
-    def drop(self, maps: torch.Tensor) -> torch.Tensor:
-        """Dropout that is on whenever it is called (training, or sampling at test time)."""
-        return nn.functional.dropout(maps, self.dropout_rate, training=True)
-
-    def sampled_below_descriptor(self, x: torch.Tensor) -> PoseOutput:
-        """Monte Carlo answers of the kendall / all variants: the layers below the
-        first dropout run once for the batch, the rest once per sample, batched."""
-        if self.dropout_variant == "kendall":
-            below = self.trunk(x)[2]  # inception 5b's maps: the first dropout is on them
-
-            def above(maps: torch.Tensor) -> torch.Tensor:
-                return pool(self.drop(maps))
-
-            clean = pool(below)
-        else:
-            below = self.trunk.lower(x)  # up to inception 3a: dropout follows it
-
-            def above(maps: torch.Tensor) -> torch.Tensor:
-                return pool(self.trunk.upper(maps, self.drop)[2])
-
-            clean = pool(self.trunk.upper(below)[2])
-        return self.head.sampled_above(
-            below, above, clean, self.to_world_positions, self.mc_samples
-        )
-
-    def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
-        return self.trunk((images - self.mean) / self.std)[2]
-
-    def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
-        return self.head.describe(pooled)
-
-
-def pool(maps: torch.Tensor) -> torch.Tensor:
-    """[n, C, h, w] -> [n, C] global average."""
-    return torch.flatten(nn.functional.adaptive_avg_pool2d(maps, 1), 1)
 
 
 def torchvision_to_posenet_key(key: str) -> str | None:

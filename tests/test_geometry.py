@@ -1,10 +1,12 @@
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from relocfw.core.errors import DataError
 from relocfw.core.geometry import (
     matrix_to_quaternion,
     mean_quaternion,
+    nearest_rotation,
     orientation_error_deg,
     pose_from_matrix,
     pose_to_matrix,
@@ -90,3 +92,66 @@ def test_mean_quaternion_ignores_sign_flips():
     spread = [axis_angle([0, 0, 1], 20 + d) for d in (-5, 5)]
     flipped = np.stack([base, -spread[0], spread[1]])
     assert orientation_error_deg(mean_quaternion(flipped), base) < 1e-6
+
+
+def xyzw(q):
+    return np.roll(np.asarray(q, dtype=np.float64), -1, axis=-1)
+
+
+def test_conversions_are_scipys_with_w_first():
+    for q in random_quaternions(50, seed=3):
+        assert np.allclose(quaternion_to_matrix(q), Rotation.from_quat(xyzw(q)).as_matrix())
+        assert np.allclose(quaternion_to_matrix(3 * q), quaternion_to_matrix(q))  # any norm
+    # w first, then x, y, z: 90 degrees about z.
+    assert np.allclose(
+        matrix_to_quaternion(quaternion_to_matrix([1, 0, 0, 1])), [0.5**0.5, 0, 0, 0.5**0.5]
+    )
+
+
+def test_matrix_to_quaternion_is_on_one_hemisphere():
+    for q in random_quaternions(50, seed=4):
+        assert matrix_to_quaternion(quaternion_to_matrix(-q))[0] >= 0
+    # 180 degrees about x: w = 0, the first non-zero component is positive.
+    assert np.allclose(matrix_to_quaternion(np.diag([1.0, -1, -1])), [0, 1, 0, 0])
+
+
+def test_a_drifted_matrix_gives_its_nearest_rotation():
+    rng = np.random.default_rng(5)
+    rotation = Rotation.random(random_state=rng).as_matrix()
+    drifted = rotation + 1e-4 * rng.normal(size=(3, 3))
+    nearest = nearest_rotation(drifted)
+    assert np.allclose(nearest.T @ nearest, np.eye(3), atol=1e-12)
+    assert np.linalg.det(nearest) == pytest.approx(1.0)
+    assert np.allclose(quaternion_to_matrix(matrix_to_quaternion(drifted)), nearest, atol=1e-12)
+    assert (
+        orientation_error_deg(matrix_to_quaternion(drifted), matrix_to_quaternion(rotation)) < 0.05
+    )
+
+
+def test_mean_quaternion_is_scipys_chordal_mean():
+    q = random_quaternions(30, seed=6) * np.random.default_rng(6).uniform(0.5, 2, size=(30, 1))
+    weights = np.random.default_rng(7).uniform(0.1, 3, size=30)
+    for w in (None, weights):
+        expected = np.roll(Rotation.from_quat(xyzw(q)).mean(w).as_quat(), 1)
+        mean = mean_quaternion(q, w)
+        assert mean[0] >= 0
+        assert np.allclose(mean, expected if expected[0] >= 0 else -expected, atol=1e-12)
+
+
+def test_mean_quaternion_over_batch_axes_is_each_items_mean():
+    rng = np.random.default_rng(8)
+    q = rng.normal(size=(3, 5, 20, 4))
+    weights = rng.uniform(0.1, 3, size=(3, 5, 20))
+    means = mean_quaternion(q, weights)
+    assert means.shape == (3, 5, 4)
+    for i in range(3):
+        for j in range(5):
+            assert np.allclose(means[i, j], mean_quaternion(q[i, j], weights[i, j]), atol=1e-12)
+    assert np.all(means[..., 0] >= 0)
+
+
+def test_a_mean_with_w_zero_follows_the_pose_hemisphere_rule():
+    # 180 degrees about y, given with both signs: w = 0, so y decides (positive).
+    q = np.array([[0.0, 0, -1, 0], [0.0, 0, 1, 0]])
+    assert np.allclose(mean_quaternion(q), [0, 0, 1, 0])
+    assert np.allclose(mean_quaternion(q), Pose(np.zeros(3), mean_quaternion(q)).quaternion)

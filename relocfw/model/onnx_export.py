@@ -34,10 +34,10 @@ import numpy as np
 import torch
 from torch import nn
 
+from relocfw.core.atomic_files import atomic_write
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.interfaces import Backbone
 from relocfw.core.version import VERSION
-from relocfw.model.checkpoints import atomic_write
 
 INPUT_NAME = "images"
 OUTPUT_NAMES = ("positions", "quaternions", "features")

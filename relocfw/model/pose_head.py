@@ -37,7 +37,8 @@ class PoseRegressor(nn.Module):
 
 
 SAMPLED_IMAGES_PER_PASS = 256  # see PoseHead.images_per_pass
-# Where a backbone's dropout can sit (backbone.dropout_variant); see plugins/posenet.py.
+# Where a backbone's dropout can sit (backbone.dropout_variant); see
+# relocfw.model.dropout_backbone.
 DROPOUT_VARIANTS = ("head", "kendall", "all")
 
 

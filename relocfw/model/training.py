@@ -11,18 +11,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from relocfw.core.atomic_files import remove_stale_temporaries
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import Strip, to_network_input
 from relocfw.core.interfaces import Backbone
 from relocfw.core.options import integer_at_least, real_number
 from relocfw.core.progress import Progress
 from relocfw.core.values import Pose
-from relocfw.model.checkpoints import (
-    CHECKPOINT_FORMAT,
-    load_checkpoint,
-    remove_stale_temporaries,
-    save_atomic,
-)
+from relocfw.model.checkpoints import CHECKPOINT_FORMAT, load_checkpoint, save_atomic
 from relocfw.model.distributed import (
     World,
     data_parallel,

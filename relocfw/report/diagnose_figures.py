@@ -1,4 +1,5 @@
-"""The crop-headroom figures of task=diagnose (matplotlib, Agg backend).
+"""The crop-headroom figures of task=diagnose (matplotlib's object API, as
+relocfw.report.figures: no pyplot, no backend chosen).
 
 Three views of the same per-offset numbers (relocfw.report.diagnosis): every window's map
 distance against its pose error, the distance and error curves over the crop offset
@@ -11,16 +12,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.patches import Rectangle
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
-import numpy as np  # noqa: E402
-from matplotlib.patches import Rectangle  # noqa: E402
-
-from relocfw.report.diagnosis import Picks, QueryWindows  # noqa: E402
-from relocfw.report.figures import save  # noqa: E402
-from relocfw.report.units import METRES, PositionUnit  # noqa: E402
+from relocfw.report.diagnosis import Picks, QueryWindows
+from relocfw.report.figures import new_figure, save
+from relocfw.report.units import METRES, PositionUnit
 
 # One colour per choice, the same in every figure.
 COLOURS = {"centre": "tab:blue", "min_distance": "tab:red", "oracle_position": "tab:green"}
@@ -45,7 +43,7 @@ def distance_vs_error(
     Centre and min-distance windows are highlighted; a non-finite pose cannot be
     drawn and is counted in the title instead.
     """
-    figure, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    figure, axes = new_figure((12, 4.5), 1, 2)
     for axis, kind, label in (
         (axes[0], "position_errors", f"position error ({unit.name})"),
         (axes[1], "orientation_errors", "orientation error (deg)"),
@@ -79,7 +77,7 @@ def offset_curves(
     unit: PositionUnit = METRES,
 ) -> Path:
     """Distance (left axis) and position error (right axis) over the crop offset."""
-    figure, axes = plt.subplots(len(which), 1, figsize=(8, 2.6 * len(which)), squeeze=False)
+    figure, axes = new_figure((8, 2.6 * len(which)), len(which), 1, squeeze=False)
     for axis, index in zip(axes[:, 0], which, strict=True):
         query, chosen = queries[index], picks[index]
         offsets = query.offsets
@@ -110,7 +108,7 @@ def offset_curves(
     return save(figure, path)
 
 
-def outline(axis: plt.Axes, box: Sequence[float], colour: str, dashed: bool = False) -> None:
+def outline(axis: Axes, box: Sequence[float], colour: str, dashed: bool = False) -> None:
     x, y, side = (float(v) for v in box)
     axis.add_patch(
         Rectangle(
@@ -139,7 +137,7 @@ def crops_on_images(
     Crops are outlined in original image pixels (solid); where the model's crop_scale
     shows the network only the crop's centre, that view is dashed.
     """
-    figure, axes = plt.subplots(1, len(which), figsize=(5 * len(which), 4.6), squeeze=False)
+    figure, axes = new_figure((5 * len(which), 4.6), 1, len(which), squeeze=False)
     for axis, index in zip(axes[0], which, strict=True):
         query, chosen = queries[index], picks[index]
         axis.imshow(images[index])

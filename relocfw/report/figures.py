@@ -1,27 +1,39 @@
-"""The comparison figures (matplotlib, Agg backend: no display needed)."""
+"""The comparison figures, drawn as PNG files.
+
+matplotlib's object API only (`matplotlib.figure.Figure`, never pyplot): no display
+is needed, no backend is chosen and no figure is registered anywhere, so importing
+relocfw leaves the user's matplotlib as it was.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure
+from sklearn.manifold import TSNE
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402  (after choosing the backend)
-import numpy as np  # noqa: E402
-from sklearn.manifold import TSNE  # noqa: E402
-
-from relocfw.data.frames import Frame, positions_of  # noqa: E402
-from relocfw.model.checkpoints import atomic_write  # noqa: E402
-from relocfw.report.evaluation import MethodResult  # noqa: E402
-from relocfw.report.units import METRES, PositionUnit  # noqa: E402
+from relocfw.core.atomic_files import atomic_write
+from relocfw.data.frames import Frame, positions_of
+from relocfw.report.evaluation import MethodResult
+from relocfw.report.units import METRES, PositionUnit
 
 
-def save(figure: plt.Figure, path: Path) -> Path:
+def new_figure(
+    size: tuple[float, float], rows: int = 1, columns: int = 1, **options: Any
+) -> tuple[Figure, Any]:
+    """A figure of `size` inches with a grid of axes (`Figure.subplots`'s `options`),
+    outside pyplot: nothing global refers to it, so it needs no closing."""
+    figure = Figure(figsize=size)
+    return figure, figure.subplots(rows, columns, **options)
+
+
+def save(figure: Figure, path: Path) -> Path:
+    """Write `figure` to `path` as a PNG, all or nothing."""
     with atomic_write(path, "wb") as stream:
         figure.savefig(stream, format="png", dpi=110, bbox_inches="tight")
-    plt.close(figure)
     return Path(path)
 
 
@@ -57,7 +69,7 @@ def error_histogram(
     finite = [e[np.isfinite(e)] for e in errors]
     top = max([extent, *(float(f.max()) for f in finite if len(f))])
     bins = np.linspace(0, top, 30)
-    figure, axis = plt.subplots(figsize=(7, 4.5))
+    figure, axis = new_figure((7, 4.5))
     for result, error in zip(results, errors, strict=True):
         parts = []
         if thresholds:
@@ -88,7 +100,7 @@ def error_curves(
     results: Sequence[MethodResult], path: Path, title: str = "", unit: PositionUnit = METRES
 ) -> Path:
     """Figure 8: position and orientation error of every test image, in order."""
-    figure, (top, bottom) = plt.subplots(2, 1, figsize=(12, 6), sharex=True)
+    figure, (top, bottom) = new_figure((12, 6), 2, 1, sharex=True)
     for axis, kind in ((top, "position"), (bottom, "orientation")):
         errors = [
             r.position_errors() if kind == "position" else r.orientation_errors() for r in results
@@ -117,7 +129,7 @@ def trajectory_top_down(
     unit: PositionUnit = METRES,
 ) -> Path:
     """Top-down (x, y) view: training path, test ground truth and each method's estimates."""
-    figure, axis = plt.subplots(figsize=(8, 7))
+    figure, axis = new_figure((8, 7))
     train_xy = positions_of(train)[:, :2]
     axis.plot(*train_xy.T, ".", color="lightgrey", markersize=3, label="training poses")
     truth = np.stack([f.pose.position for f in results[0].frames])[:, :2]
@@ -148,7 +160,7 @@ def tsne_of_map(
     points = np.concatenate([features, centres])
     perplexity = float(min(30.0, max(2.0, (len(points) - 1) / 3)))
     embedded = TSNE(perplexity=perplexity, init="pca", random_state=seed).fit_transform(points)
-    figure, axis = plt.subplots(figsize=(7, 6))
+    figure, axis = new_figure((7, 6))
     axis.scatter(*embedded[: len(features)].T, c=labels, cmap="tab20", s=8, alpha=0.7)
     axis.scatter(
         *embedded[len(features) :].T,
@@ -173,7 +185,7 @@ def uncertainty_against_error(
 ) -> Path:
     """The authors' view, one point per query: spread against error (position and
     orientation), and each kind's sparsification curve against its oracle."""
-    figure, axes = plt.subplots(2, 2, figsize=(11, 8))
+    figure, axes = new_figure((11, 8), 2, 2)
     spreads = {
         "position": np.array([a.position_spread for a in result.answers]),
         "orientation": np.array([a.orientation_spread_deg for a in result.answers]),
@@ -207,7 +219,7 @@ def training_curve(
     """Per-step losses of a training run: the total and each head's (log scale), the
     main head's errors (positions in the training poses' `unit`), and the learning
     rate with any learned loss weights."""
-    figure, (losses, errors, schedule) = plt.subplots(1, 3, figsize=(15, 4))
+    figure, (losses, errors, schedule) = new_figure((15, 4), 1, 3)
     steps = np.arange(1, len(history.get("loss", [])) + 1)
     for name in ("loss", "main", "aux1", "aux2"):
         if history.get(name):

@@ -1,0 +1,35 @@
+"""Files written all or nothing (relocfw.core.atomic_files), still importable from
+their first path, relocfw.model.checkpoints."""
+
+import pytest
+
+from relocfw.core import atomic_files
+from relocfw.core.atomic_files import atomic_write, remove_stale_temporaries, write_text_atomic
+
+
+def test_a_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):
+    path = tmp_path / "results" / "summary.csv"
+    write_text_atomic("a,b\r\n1,2\n", path)  # the folder is made; newlines as given
+    assert path.read_bytes() == b"a,b\r\n1,2\n"
+    with pytest.raises(RuntimeError), atomic_write(path, "w") as stream:
+        stream.write("half")
+        raise RuntimeError("killed")
+    assert path.read_bytes() == b"a,b\r\n1,2\n"
+    assert [p.name for p in path.parent.iterdir()] == ["summary.csv"]
+
+
+def test_a_killed_writers_temporaries_are_removed_and_nothing_else(tmp_path):
+    path = tmp_path / "model.pt"
+    with atomic_write(path) as stream:
+        stream.write(b"whole")
+    (tmp_path / ".model.pt.x1y2").write_bytes(b"half")
+    (tmp_path / ".other.pt.x1y2").write_bytes(b"someone else's")
+    remove_stale_temporaries(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".other.pt.x1y2", "model.pt"]
+
+
+def test_the_old_import_path_names_the_same_functions():
+    from relocfw.model import checkpoints
+
+    for name in ("atomic_write", "write_text_atomic", "remove_stale_temporaries"):
+        assert getattr(checkpoints, name) is getattr(atomic_files, name)
