@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw.app.cli_methods import pick_device
+from relocfw.app.devices import pick_device
 from relocfw.core.errors import ConfigError
 from relocfw.model.checkpoints import load_checkpoint
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
@@ -188,8 +188,9 @@ def test_localize_matches_the_evaluation_run(trained_run, tiny_scene):
     result = relocfw(
         [
             "task=localize",
-            f"model={run_dir / 'model.relocfw'}",
-            f"images={scene / 'seq-03'}/*.png",
+            f"localize.model={run_dir / 'model.relocfw'}",
+            f"localize.images={scene / 'seq-03'}/*.png",
+            "query.queries_at_once=3",  # over the model file's 1: the same answers
             f"hydra.run.dir={out}",
             "quiet=true",
         ],
@@ -197,6 +198,7 @@ def test_localize_matches_the_evaluation_run(trained_run, tiny_scene):
         home / "cache",
     )
     assert result.returncode == 0, result.stderr
+    assert result.stderr == ""
     poses = np.loadtxt(out / "poses.txt")  # TUM: t x y z qx qy qz qw
     rows = [line.split(",") for line in (run_dir / "results.csv").read_text().splitlines()]
     header, rows = rows[0], [r for r in rows[1:] if r[0] == "ga + kmeans (k=4)"]
@@ -225,7 +227,8 @@ def test_bad_model_files(trained_run, tmp_path, content, message):
     home, run_dir = trained_run
     bad = tmp_path / "bad.relocfw"
     bad.write_bytes(content((run_dir / "model.relocfw").read_bytes()))
-    result = relocfw(["task=localize", f"model={bad}", f"images={tmp_path}"], tmp_path)
+    args = ["task=localize", f"localize.model={bad}", f"localize.images={tmp_path}"]
+    result = relocfw(args, tmp_path)
     assert result.returncode == 2 and message in result.stderr and str(bad) in result.stderr
 
 
@@ -235,14 +238,24 @@ def test_model_file_of_another_format(trained_run, tmp_path):
     payload["format"] = 99
     old = tmp_path / "old.relocfw"
     torch.save(payload, old)
+    # In the spellings before issue 21: model= and images= are read as localize.*.
     result = relocfw(["task=localize", f"model={old}", f"images={tmp_path}"], tmp_path)
     assert result.returncode == 2 and "model format 99" in result.stderr
+    notes = result.stderr.splitlines()[:2]
+    assert notes == [
+        f"note: model= is now localize.model= (read as localize.model={old})",
+        f"note: images= is now localize.images= (read as localize.images={tmp_path})",
+    ]
 
 
 def test_localize_without_images(trained_run, tmp_path):
     home, run_dir = trained_run
     result = relocfw(
-        ["task=localize", f"model={run_dir / 'model.relocfw'}", f"images={tmp_path}/*.png"],
+        [
+            "task=localize",
+            f"localize.model={run_dir / 'model.relocfw'}",
+            f"localize.images={tmp_path}/*.png",
+        ],
         tmp_path,
     )
     assert result.returncode == 2 and "no image files found" in result.stderr

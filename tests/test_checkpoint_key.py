@@ -1,7 +1,7 @@
 """A checkpoint is reused only for the same model: any training input changes its key.
 
 Methods are built from composed configs exactly as the CLI builds them (build_method),
-then trained or reused by relocalize_task.train_or_reuse on the tiny synthetic scene.
+then trained or reused by relocfw.app.training_runs.train_or_reuse on the tiny synthetic scene.
 """
 
 from dataclasses import replace
@@ -11,8 +11,8 @@ import pytest
 import torch
 from hydra import compose, initialize_config_module
 
-from relocfw.app import relocalize_task
-from relocfw.app.cli_methods import build_method
+from relocfw.app import training_runs
+from relocfw.app.methods import build_method
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.model.checkpoints import load_checkpoint, settings_key
@@ -41,7 +41,7 @@ def cache(tmp_path_factory):
 
 def train(method, frames, images, cache):
     """(checkpoint path, whether it was reused) for this method and training split."""
-    checkpoint, run = relocalize_task.train_or_reuse(
+    checkpoint, run = training_runs.train_or_reuse(
         method.backbone,
         frames,
         images,
@@ -99,7 +99,7 @@ def test_a_changed_training_or_backbone_option_trains_a_new_model(
         asked.append(checkpoint)
         return TrainingRun([], reused=checkpoint.is_file())
 
-    monkeypatch.setattr(relocalize_task, "train_backbone", stub)
+    monkeypatch.setattr(training_runs, "train_backbone", stub)
     checkpoint, reused = train(method_of(*overrides), *train_split, cache)
     assert asked == [checkpoint]
     assert checkpoint != first and not reused

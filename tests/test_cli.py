@@ -1,6 +1,7 @@
 """The `relocfw` command end to end, on a tiny configuration, in a subprocess."""
 
 import csv
+import inspect
 import json
 import os
 import re
@@ -10,7 +11,11 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
+from relocfw.app import cli
+from relocfw.app.config_schema import Task
+from relocfw.app.spellings import rewrite
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
 
 
@@ -52,13 +57,29 @@ def test_main_job_writes_results_and_reuses_the_model(tmp_path, cache):
     assert len(checkpoints) == 1
     stamp = checkpoints[0].stat().st_mtime_ns
 
-    # A second method on the same model: the checkpoint is reused, not retrained.
+    # A second method on the same model: the checkpoint is reused, not retrained. Its
+    # query options are in the spellings before issue 21: read anew, one note each.
+    old = ["query_batch_size=8", "baselines=[mean_pose,posenet]", "queries_at_once=2"]
     again = relocfw(
-        [*TINY_OVERRIDES, "crop=sweep", "index=exhaustive", f"hydra.run.dir={tmp_path / 'r2'}"],
+        [
+            *TINY_OVERRIDES,
+            "crop=sweep",
+            "index=exhaustive",
+            *old,
+            f"hydra.run.dir={tmp_path / 'r2'}",
+        ],
         tmp_path,
         cache,
     )
     assert again.returncode == 0, again.stderr
+    assert again.stderr.splitlines() == [
+        "note: query_batch_size= is now query.batch_size= (read as query.batch_size=8)",
+        "note: baselines= is now relocalize.baselines= "
+        "(read as relocalize.baselines=[mean_pose,posenet])",
+        "note: queries_at_once= is now query.queries_at_once= (read as query.queries_at_once=2)",
+    ]
+    overrides = yaml.safe_load((tmp_path / "r2" / ".hydra" / "overrides.yaml").read_text())
+    assert "query.batch_size=8" in overrides and "query_batch_size=8" not in overrides
     assert "sweep + exhaustive" in again.stdout
     assert "(reused)" in again.stdout and "(trained)" in result.stdout
     assert (tmp_path / "r2" / "training_curve.png").is_file()  # drawn from the checkpoint
@@ -147,16 +168,15 @@ def test_compare_of_the_dropout_variants(tmp_path, cache):
         (["k=500"], "k=500 is more clusters than training descriptors"),
         (["crop.population=1"], "population must be at least 2"),
         (["dataset=sevenscenes", "dataset.root=/no/such/dir"], "/no/such/dir"),
-        (["train.optimizer=rmsprop"], "train.optimizer"),
-        (["train.log=wandb"], "train.log must be none or tensorboard"),
-        (["crop_samples=4", "train.crop_scale=1.0"], "the window fills the crop"),
-        (["rerank=3"], "with scoring=plain every candidate is already plain"),
-        (["queries_at_once=0"], "queries_at_once must be at least 1"),
-        (["task=nosuch"], "task must be one of"),
+        (["train.optimizer=rmsprop"], "train.optimizer=rmsprop: Invalid value 'rmsprop'"),
+        (["train.log=wandb"], "expected one of [none, tensorboard]"),
+        (["query.crop_samples=4", "train.crop_scale=1.0"], "the window fills the crop"),
+        (["query.rerank=3"], "query.rerank=3 re-scores the best shared-scoring candidates"),
+        (["query.queries_at_once=0"], "query.queries_at_once must be at least 1, got 0"),
+        (["task=nosuch"], "task=nosuch: Invalid value 'nosuch', expected one of [relocalize,"),
         (["device=cuda:7"], "device"),
         (["task=compare", "compare.reference=Nobody"], "compare.reference"),
-        (["retrieval_k=1"], "needs an index that returns neighbours"),
-        (["scoring=fast"], "scoring must be one of plain, shared, got 'fast'"),
+        (["query.retrieval_k=1"], "query.retrieval_k=1 needs an index that returns neighbours"),
         (["index=faiss", "index.kind=lsh"], "index.kind must be one of flat, ivf, hnsw"),
         (["index=faiss", "index.kind=ivf"], "nlist=1024 is more IVF cells than map"),
         (["preset=paper"], "preset=paper fine-tunes ImageNet weights (train.lr=1e-05)"),
@@ -167,10 +187,127 @@ def test_compare_of_the_dropout_variants(tmp_path, cache):
 def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):
     tiny = TINY_MODEL if "dataset=sevenscenes" in args else TINY_OVERRIDES
     result = relocfw([*tiny, *args], tmp_path, cache)
-    assert result.returncode != 0
+    assert result.returncode == 2
     assert message in result.stderr
-    assert "Traceback" not in result.stderr
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith("error: ") and "Traceback" not in result.stderr
     assert "model:" not in result.stdout  # refused before any training
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ["query.batch_size=abc"],
+            "query.batch_size=abc: Value 'abc' of type 'str' could not be converted to Integer",
+        ),
+        (["query.scoring=fancy"], "query.scoring=fancy: Invalid value 'fancy', expected one of"),
+        (
+            ["task=localize", "localize.backend=tf"],
+            "localize.backend=tf: Invalid value 'tf', expected one of [torch, onnx]",
+        ),
+    ],
+    ids=["type", "choice", "backend"],
+)
+def test_a_wrong_type_or_choice_fails_before_any_work_in_one_line(tmp_path, args, message):
+    result = relocfw([*TINY_OVERRIDES, *args], tmp_path)
+    assert result.returncode == 2, result.stderr
+    (line,) = [line for line in result.stderr.splitlines() if not line.startswith("note: ")]
+    assert line.startswith(f"error: {message}"), result.stderr
+    assert result.stdout == ""
+    assert not (tmp_path / "cache").exists()  # nothing rendered, nothing trained
+    assert not (tmp_path / "outputs").exists()  # not even a run directory
+
+
+def test_an_old_multirun_list_is_read_in_the_new_spelling(tmp_path):
+    sweep = tmp_path / "multi"
+    args = ["-m", "task=plugins", "scoring=plain,shared", f"hydra.sweep.dir={sweep}"]
+    result = relocfw(args, tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.splitlines() == [
+        "note: scoring= is now query.scoring= (read as query.scoring=plain,shared)"
+    ]
+    for job, scoring in ((0, "plain"), (1, "shared")):
+        overrides = yaml.safe_load((sweep / str(job) / ".hydra" / "overrides.yaml").read_text())
+        assert f"query.scoring={scoring}" in overrides
+
+
+@pytest.mark.parametrize(
+    "old, task, new",
+    [
+        (["scoring=shared"], None, ["query.scoring=shared"]),
+        (["+crop_samples=4", "~rerank"], None, ["+query.crop_samples=4", "~query.rerank"]),
+        (["retrieval_k=1,5", "x=1"], None, ["query.retrieval_k=1,5", "x=1"]),
+        (["task=export", "model=m.relocfw"], None, ["task=export", "export.model=m.relocfw"]),
+        (["model=m.relocfw", "task=localize"], None, ["localize.model=m.relocfw", "task=localize"]),
+        (["model=m"], "export", ["export.model=m"]),
+        (["-m", "--config-name", "scoring"], None, ["-m", "--config-name", "scoring"]),
+        (["pretrained_required=true"], None, ["train.pretrained_required=true"]),
+        (
+            ["images=a/*.png", "backend=onnx"],
+            None,
+            ["localize.images=a/*.png", "localize.backend=onnx"],
+        ),
+        (["query.scoring=plain", "scoring_x=1"], None, ["query.scoring=plain", "scoring_x=1"]),
+    ],
+)
+def test_old_spellings_are_rewritten_key_by_key(old, task, new):
+    rewritten, found = rewrite(old, task)
+    assert rewritten == new
+    assert len(found) == len([o for o, n in zip(old, new, strict=True) if o != n])
+
+
+def test_a_users_old_methods_file_still_works(tmp_path):
+    """compare.methods rows in the old spellings are read in the new ones, one note per
+    key (the file is composed but nothing runs: the reference is missing)."""
+    folder = tmp_path / "mine" / "methods"
+    folder.mkdir(parents=True)
+    (folder / "old.yaml").write_text(
+        "# @package compare.methods\n"
+        "Retrieval: [crop=centre, index=exhaustive, retrieval_k=1]\n"
+        "Shared: [crop=ga, scoring=shared, rerank=2]\n"
+        "Shared again: [crop=sweep, scoring=shared]\n"
+    )
+    args = [
+        *TINY_OVERRIDES,
+        "task=compare",
+        "methods=old",
+        "compare.reference=Nobody",
+        f"hydra.searchpath=[file://{tmp_path / 'mine'}]",
+    ]
+    result = relocfw(args, tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.splitlines() == [
+        "note: retrieval_k= is now query.retrieval_k= "
+        "(compare.methods.Retrieval: read as query.retrieval_k=1)",
+        "note: scoring= is now query.scoring= "
+        "(compare.methods.Shared: read as query.scoring=shared)",
+        "note: rerank= is now query.rerank= (compare.methods.Shared: read as query.rerank=2)",
+        "error: compare.reference='Nobody' is not in compare.methods",
+    ]
+
+
+def test_the_dispatch_table_runs_every_task():
+    assert sorted(cli.TASKS) == sorted(task.value for task in Task)
+    for name, run in cli.TASKS.items():
+        assert run.__name__ == "run" and run.__module__ == f"relocfw.app.tasks.{name}"
+        assert list(inspect.signature(run).parameters) == ["cfg", "device", "world"], name
+
+
+def test_the_main_job_has_no_option_outside_its_groups():
+    """The top level keeps task, seed, device, cache_dir, quiet and k; every other
+    option sits in a group (query., localize., ...)."""
+    from hydra import compose, initialize_config_module
+
+    with initialize_config_module(config_module="relocfw.conf", version_base="1.3"):
+        cfg = compose("config")
+    plain = {key for key, value in cfg.items() if not hasattr(value, "keys")}
+    assert plain == {"task", "seed", "device", "cache_dir", "quiet", "k"}
+    assert set(cfg) - plain == {
+        *("backbone", "index", "crop", "dataset", "query", "localize", "export"),
+        *("relocalize", "compare", "diagnose", "train"),
+    }
+    assert all(value is None for value in cfg.query.values())  # each task's default
 
 
 def test_the_centre_crop_row_says_when_it_samples_dropout(tmp_path, cache):
@@ -183,17 +320,27 @@ def test_the_centre_crop_row_says_when_it_samples_dropout(tmp_path, cache):
     assert "posenet (centre crop)" not in result.stdout
 
 
-def test_compare_rows_say_when_the_command_line_samples_dropout(tmp_path, cache):
+def test_compare_rows_say_when_the_command_line_samples_dropout(tmp_path, cache, tiny_scene):
+    # On a 7-Scenes layout whose scene is "room": the reports name the scene, not the
+    # loader (sevenscenes).
+    shutil.copytree(tiny_scene, tmp_path / "data" / "room")
+    scene = ["dataset=sevenscenes", f"dataset.root={tmp_path / 'data'}", "dataset.scene=room"]
     run_dir = tmp_path / "compare"
     methods = '+compare.methods={PoseNet:["crop=centre"],Bayes:["backbone.mc_samples=3"]}'
-    args = [*TINY_OVERRIDES, "task=compare", "~compare.methods", methods]
-    args += ["backbone.mc_samples=2", "crop=centre"]
+    args = [*TINY_MODEL, *scene, "task=compare", "~compare.methods", methods]
+    args += ["backbone.mc_samples=2", "crop=centre", "compare.crop_seeds=null"]
     result = relocfw([*args, f"hydra.run.dir={run_dir}"], tmp_path, cache)
     assert result.returncode == 0, result.stderr
     header = (run_dir / "comparison.csv").read_text().splitlines()[0]
     # PoseNet did not ask for sampling but got it from the command line: it says so.
     assert "PoseNet (x2 MC dropout) (m, deg)" in header
     assert "Bayes (m, deg)" in header  # asked for its own samples: its name stands
+    assert "| room |" in (run_dir / "comparison.md").read_text()
+    assert list(json.loads((run_dir / "comparison.json").read_text())["scenes"]) == ["room"]
+    assert (run_dir / "table_room.txt").is_file() and (
+        run_dir / "room_error_per_image.png"
+    ).is_file()
+    assert "sevenscenes" not in result.stdout and not list(run_dir.glob("sevenscenes*"))
 
 
 def test_corrupt_image_names_the_file(tmp_path, cache, tiny_scene):

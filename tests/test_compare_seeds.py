@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 from omegaconf import OmegaConf
 
-from relocfw.app.cli_compare import rerun_crop_seeds
+from relocfw.app.tasks.compare import rerun_crop_seeds
 from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
 from relocfw.report.evaluation import MethodResult
@@ -14,11 +14,11 @@ from relocfw.report.evaluation import MethodResult
 class SeedEchoRelocalizer:
     """Answers each query with its crop search's seed as the x position."""
 
-    def __init__(self, crop):
-        self.crop = crop
+    def __init__(self, search):
+        self.search = search
 
     def localize(self, image):
-        pose = Pose([float(self.crop.seed), 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
+        pose = Pose([float(self.search.seed), 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
         return Localization(pose, Crop(0, 0, 1), 0.0, 1, 0.0)
 
 
@@ -43,5 +43,5 @@ def test_each_crop_seed_is_used_once_and_the_configured_search_is_put_back():
     for seed in (0, 2):
         assert [a.pose.position[0] for a in runs[seed].answers] == [seed] * 3
         assert runs[seed].method == f"GA, crop.seed={seed}"
-    assert relocalizer.crop is configured
+    assert relocalizer.search is configured
     assert OmegaConf.to_yaml(cfg).count("${seed}") == 1  # the composed config is untouched

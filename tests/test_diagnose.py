@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from relocfw import Relocalizer
+from relocfw import QueryOptions, Relocalizer
 from relocfw.core.geometry import orientation_error_deg, position_error
 from relocfw.core.json_output import json_ready
 from relocfw.core.values import Pose
@@ -104,7 +104,7 @@ def test_every_offset_scored_once_on_the_pipelines_windows(tiny_scene):
     # 1.05: the network sees the crop's centre, and the 34-pixel strip is smaller than
     # the image, so some offsets round to the same window.
     backbone.set_crop_scale(1.05)
-    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), batch_size=5)
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), QueryOptions(batch_size=5))
     relocalizer.fit(train)
     backbone.batches.clear()
     queries = diagnose(relocalizer, test_frames, test)
@@ -164,6 +164,8 @@ def test_cli_diagnose_writes_table_windows_and_figures(tmp_path):
         "oracle_orientation",
     }
     assert report["settings"]["crop_scale"] == pytest.approx(1.142857, abs=1e-6)
+    assert report["settings"]["scene"] == "synthetic"  # no dataset.scene: the dataset's name
+    assert report["settings"]["query_batch_size"] == 16  # query.batch_size=null: the default
     assert (run_dir / "diagnose.md").read_text() in result.stdout
     with open(run_dir / "diagnose_windows.csv") as stream:
         rows = list(csv.DictReader(stream))

@@ -1,13 +1,22 @@
-"""task=localize's files: poses.txt in TUM format, with TUM timestamps where names are times."""
+"""task=localize: the model file's query options under query.*, and its files: poses.txt
+in TUM format, with TUM timestamps where names are times."""
 
 import csv
 
 import cv2
 import numpy as np
 import pytest
+import torch
+from hydra import compose, initialize_config_module
 
-from relocfw.app.localize_task import localize_images
+from relocfw import QueryOptions, Relocalizer
+from relocfw.app.tasks.localize import load_for_localize, localize_images
+from relocfw.core.errors import ConfigError
 from relocfw.core.values import Crop, Localization, Pose
+from relocfw.model.model_file import save_model
+from relocfw.plugins.exhaustive_index import ExhaustiveIndex
+from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.sweep_crop import SweepCrop
 
 
 class GreyLevelRelocalizer:
@@ -19,7 +28,7 @@ class GreyLevelRelocalizer:
         pose = Pose(np.array([level, 1.0, 2.0]), np.array([np.cos(half), 0, 0, np.sin(half)]))
         return Localization(pose, Crop(0, 0, 4), 0.25, 1, 0.0)
 
-    queries_at_once = 2  # images come in groups of two
+    options = QueryOptions(queries_at_once=2)  # images come in groups of two
 
     def localize_many(self, images, queries_at_once):
         assert len(images) <= queries_at_once == 2
@@ -79,3 +88,57 @@ def test_poses_txt_rows_are_position_then_quaternion_with_w_last(tmp_path):
         half = np.radians(2 * level) / 2
         assert np.allclose(row[1:4], [level, 1.0, 2.0])
         assert np.allclose(row[4:], [0.0, 0.0, np.sin(half), np.cos(half)])
+
+
+# What the model file keeps: every option away from its default.
+SAVED = QueryOptions(
+    batch_size=4, scoring="shared", rerank=3, crop_samples=2, sample_seed=7, queries_at_once=2
+)
+
+
+@pytest.fixture(scope="module")
+def saved_model(tmp_path_factory):
+    torch.manual_seed(0)
+    backbone = PoseNet(input_size=32, width=0.125, feature_dim=32)
+    backbone.set_crop_scale(1.142857)  # crop sampling needs a crop larger than the view
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), SAVED)
+    relocalizer.fit([np.zeros((36, 48, 3), np.uint8), np.full((36, 48, 3), 200, np.uint8)])
+    options = {"backbone": {"input_size": 32, "width": 0.125, "feature_dim": 32}}
+    path = tmp_path_factory.mktemp("model") / "model.relocfw"
+    return save_model(path, relocalizer, options, {})
+
+
+def localize_config(model, *overrides):
+    """The config `relocfw task=localize localize.model=MODEL ...` composes."""
+    with initialize_config_module(config_module="relocfw.conf", version_base="1.3"):
+        return compose("config", overrides=["task=localize", f"localize.model={model}", *overrides])
+
+
+def test_localize_keeps_the_model_files_query_options_where_query_is_null(saved_model):
+    relocalizer = load_for_localize(localize_config(saved_model), torch.device("cpu"))
+    assert relocalizer.options == SAVED
+
+
+@pytest.mark.parametrize(
+    "overrides, changed",
+    [
+        (["query.batch_size=9"], {"batch_size": 9}),
+        (
+            ["query.queries_at_once=1", "query.sample_seed=0"],
+            {"queries_at_once": 1, "sample_seed": 0},
+        ),
+        (["query.crop_samples=0"], {"crop_samples": 0}),
+        # Plain scoring makes the file's rerank moot: it falls back to 1.
+        (["query.scoring=plain"], {"scoring": "plain", "rerank": 1}),
+        (["query.rerank=5"], {"rerank": 5}),
+    ],
+)
+def test_an_explicit_query_value_overrides_the_model_files(saved_model, overrides, changed):
+    relocalizer = load_for_localize(localize_config(saved_model, *overrides), torch.device("cpu"))
+    assert relocalizer.options == SAVED.replace(**changed)
+
+
+def test_a_bad_query_value_for_localize_names_the_query_key(saved_model):
+    cfg = localize_config(saved_model, "query.scoring=plain", "query.rerank=2")
+    with pytest.raises(ConfigError, match=r"^query\.rerank=2 re-scores"):
+        load_for_localize(cfg, torch.device("cpu"))

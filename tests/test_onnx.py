@@ -1,4 +1,4 @@
-"""ONNX export (task=export) and the onnxruntime backend (task=localize backend=onnx)."""
+"""ONNX export (task=export) and the onnxruntime backend (task=localize localize.backend=onnx)."""
 
 import csv
 import importlib
@@ -11,10 +11,11 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from relocfw.app import cli
+from relocfw.app.tasks import export, localize
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import Strip, to_network_input
 from relocfw.core.pipeline import Relocalizer
+from relocfw.core.query_options import QueryOptions
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.model import onnx_export
@@ -138,7 +139,9 @@ def scene_images(tiny_scene):
 def test_onnx_backbone_gives_the_torch_crops_and_poses(tmp_path, scene_images):
     train, test = scene_images
     backbone = tiny_posenet()
-    relocalizer = Relocalizer(backbone, KMeansIndex(k=4), GeneticCropSearch(seed=0), batch_size=5)
+    relocalizer = Relocalizer(
+        backbone, KMeansIndex(k=4), GeneticCropSearch(seed=0), QueryOptions(batch_size=5)
+    )
     features = relocalizer.fit(train)
     export_onnx(backbone, tmp_path / "net.onnx")
     swapped = onnx_relocalizer(relocalizer, tmp_path / "net.onnx")
@@ -158,7 +161,7 @@ def test_onnx_backbone_gives_the_torch_crops_and_poses(tmp_path, scene_images):
 def test_onnx_relocalizer_refuses_what_the_graph_cannot_do(tmp_path):
     backbone = tiny_posenet()
     export_onnx(backbone, tmp_path / "net.onnx")
-    shared = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop(), scoring="shared")
+    shared = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop(), QueryOptions(scoring="shared"))
     with pytest.raises(ConfigError, match="cannot use scoring=shared"):
         onnx_relocalizer(shared, tmp_path / "net.onnx")
     backbone.mc_samples = 4
@@ -177,14 +180,20 @@ def test_export_task_says_monte_carlo_sampling_is_left_out(tmp_path, capsys):
         "crop": {},
     }
     model = save_model(tmp_path / "model.relocfw", relocalizer, options, {})
-    cfg = OmegaConf.create({"model": str(model), "export": {"out": None}, "backend": "onnx"})
-    cli.run_export(cfg)
+    cfg = OmegaConf.create({"export": {"model": str(model), "out": None}})
+    export.run(cfg, torch.device("cpu"), None)
     printed = capsys.readouterr().out
     assert "mc_samples=3" in printed and "dropout-free" in printed
     assert onnx_path(model) == tmp_path / "model.relocfw.onnx" and onnx_path(model).is_file()
-    cfg.scoring, cfg.query_batch_size = "plain", 8
+    cfg = OmegaConf.create(
+        {
+            "localize": {"model": str(model), "backend": "onnx"},
+            "query": {"scoring": "plain", "batch_size": 8},
+            "export": {"out": None},
+        }
+    )
     with pytest.raises(ConfigError, match="mc_samples=3"):  # ... but localize cannot sample
-        cli.load_for_localize(cfg, torch.device("cpu"))
+        localize.load_for_localize(cfg, torch.device("cpu"))
 
 
 def saved_tiny_model(folder: Path) -> Path:
@@ -195,8 +204,8 @@ def saved_tiny_model(folder: Path) -> Path:
 
 
 def export_to(model: Path, out: str | None) -> None:
-    cfg = OmegaConf.create({"model": str(model), "export": {"out": out}, "backend": "onnx"})
-    cli.run_export(cfg)
+    cfg = OmegaConf.create({"export": {"model": str(model), "out": out}})
+    export.run(cfg, torch.device("cpu"), None)
 
 
 @pytest.mark.parametrize(
@@ -257,8 +266,12 @@ def localization_rows(run_dir):
 
 def test_cli_export_then_localize_with_onnxruntime(trained_model):
     home, model, images = trained_model
+    # model= in the spelling before issue 21: task=export reads it as export.model.
     exported = relocfw(["task=export", f"model={model}"], home, home / "cache")
     assert exported.returncode == 0, exported.stderr
+    assert exported.stderr.splitlines() == [
+        f"note: model= is now export.model= (read as export.model={model})"
+    ]
     assert f"ONNX network: {model}.onnx" in exported.stdout
     runs = {}
     for backend in ("torch", "onnx"):
@@ -266,9 +279,9 @@ def test_cli_export_then_localize_with_onnxruntime(trained_model):
         result = relocfw(
             [
                 "task=localize",
-                f"model={model}",
-                f"images={images}/*.png",
-                f"backend={backend}",
+                f"localize.model={model}",
+                f"localize.images={images}/*.png",
+                f"localize.backend={backend}",
                 f"hydra.run.dir={runs[backend]}",
                 "quiet=true",
             ],
@@ -290,9 +303,15 @@ def test_cli_export_then_localize_with_onnxruntime(trained_model):
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["backend=onnx"], "run relocfw task=export model="),
-        (["backend=onnx", "scoring=shared"], "backend=onnx cannot use scoring=shared"),
-        (["backend=tensorrt"], "backend must be one of torch, onnx, got 'tensorrt'"),
+        (["localize.backend=onnx"], "run relocfw task=export export.model="),
+        (
+            ["localize.backend=onnx", "query.scoring=shared"],
+            "backend=onnx cannot use scoring=shared",
+        ),
+        (
+            ["localize.backend=tensorrt"],
+            "localize.backend=tensorrt: Invalid value 'tensorrt', expected one of [torch, onnx]",
+        ),
     ],
     ids=["no onnx file", "shared scoring", "unknown backend"],
 )
@@ -301,7 +320,9 @@ def test_cli_bad_backend_inputs(trained_model, tmp_path, args, message):
     lone = tmp_path / "model.relocfw"  # a model file with no export beside it
     lone.write_bytes(model.read_bytes())
     result = relocfw(
-        ["task=localize", f"model={lone}", f"images={images}/*.png", *args], tmp_path, home
+        ["task=localize", f"localize.model={lone}", f"localize.images={images}/*.png", *args],
+        tmp_path,
+        home,
     )
     assert result.returncode == 2, result.stdout
     assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
@@ -311,7 +332,7 @@ def test_cli_export_onto_the_model_file_is_refused_in_one_line(trained_model, tm
     home, model, _ = trained_model
     lone = tmp_path / "m"
     lone.write_bytes(model.read_bytes())
-    result = relocfw(["task=export", "model=m", "export.out=./m"], tmp_path, home)
+    result = relocfw(["task=export", "export.model=m", "export.out=./m"], tmp_path, home)
     assert result.returncode == 2, result.stdout
     (line,) = result.stderr.strip().splitlines()
     assert "export.out=./m is the model file itself" in line

@@ -112,7 +112,7 @@ def test_an_object_that_is_not_the_interface_is_named(tmp_path, broken_site):
     assert result.returncode == 2
     assert (
         "crop=plain (from brokenplug): broken_plugin.plain.NotASearch does not implement "
-        "relocfw.CropSearch (subclass it); it lacks search" in result.stderr
+        "relocfw.CropSearch (subclass it); it lacks propose or search" in result.stderr
     )
     assert "model:" not in result.stdout
 

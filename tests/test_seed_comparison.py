@@ -108,7 +108,7 @@ def test_bad_seed_lists_are_refused(tmp_path, seeds):
 def test_a_method_that_fails_queries_is_written_strictly_and_counted(tmp_path):
     import math
 
-    from relocfw.app.compare_task import write_comparison, write_seed_comparison
+    from relocfw.app.tasks.compare import write_comparison, write_seed_comparison
 
     good = [0.1, 0.2, 0.3, 0.4]
     failing = [0.1, float("nan"), 0.3, float("nan")]  # two queries without a pose

@@ -62,7 +62,7 @@ def test_quality_of_both_spreads_and_none_when_not_sampled():
 def test_a_sampled_methods_summary_carries_its_uncertainty_columns():
     from pathlib import Path
 
-    from relocfw.app.relocalize_task import summary_csv
+    from relocfw.app.results import summary_csv
     from relocfw.core.values import Crop, Localization, Pose
     from relocfw.data.frames import Frame
     from relocfw.report.evaluation import MethodResult, summarise

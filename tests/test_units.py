@@ -228,7 +228,7 @@ def answered(method: str, errors: list[float], spread: float = float("nan")) -> 
 
 
 def test_the_seed_comparison_names_no_metres(tmp_path):
-    from relocfw.app.compare_task import write_seed_comparison
+    from relocfw.app.tasks.compare import write_seed_comparison
     from relocfw.report.units import model_units
 
     results = {

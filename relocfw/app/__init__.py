@@ -1,2 +1,4 @@
-"""The application: the Hydra CLI (the only place that sees a config), its tasks as
-plain functions, plugin discovery and the torchrun entry."""
+"""The application: the Hydra CLI (relocfw.app.cli, a table of tasks), the config's
+types (config_schema) and old spellings (spellings), one module per task
+(relocfw.app.tasks), plugin discovery and the torchrun entry. Hydra and OmegaConf are
+seen here only."""

@@ -7,8 +7,8 @@ Relocalizer: every crop offset of every test query is scored once (the windows t
 sweep would try, relocfw.report.window_scores), and `summarise_headroom` compares three
 choices per query: the centre crop (PoseNet), the crop of smallest map distance (a
 perfect search of the paper's objective) and the oracle crop (the best any crop could
-do, chosen with the ground truth). No Hydra here: the CLI (relocfw.app.cli_diagnose) and
-the writer of the files (relocfw.app.diagnose_task) sit on top.
+do, chosen with the ground truth). No Hydra here: the task that runs it and writes its files
+(relocfw.app.tasks.diagnose) sits on top.
 """
 
 from __future__ import annotations

@@ -1,7 +1,9 @@
-"""`relocfw task=diagnose`: writing the crop-headroom numbers, table, windows and figures.
+"""task=diagnose: does the crop nearest the map give a better pose than the centre crop?
 
-Plain functions, no Hydra: diagnosed queries (relocfw.report.diagnosis) and settings in,
-files in the run directory out.
+The same model and map as task=relocalize (the checkpoint is trained or reused by the
+same key, the map fitted with the configured index); then every crop offset of every
+test query is scored (relocfw.report.diagnosis) and the numbers, table, windows and
+figures written to the run directory.
 """
 
 from __future__ import annotations
@@ -14,11 +16,20 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
 
+from relocfw.app.methods import dataset_settings, scene_name
+from relocfw.app.splits import load_split, write_skipped
+from relocfw.app.tasks.train import trained
 from relocfw.core.json_output import strict_json
+from relocfw.core.options import integer_at_least
+from relocfw.core.version import VERSION
 from relocfw.model.checkpoints import write_text_atomic
+from relocfw.model.distributed import World
 from relocfw.report import diagnose_figures
-from relocfw.report.diagnosis import Picks, QueryWindows, picks_of, summarise_queries
+from relocfw.report.diagnosis import Picks, QueryWindows, diagnose, picks_of, summarise_queries
 from relocfw.report.units import (
     METRES,
     PositionUnit,
@@ -26,6 +37,7 @@ from relocfw.report.units import (
     relabel_key,
     relabel_tree,
     text_note,
+    unit_of,
 )
 
 CHOICE_NAMES = {
@@ -193,3 +205,50 @@ def write_diagnosis(
     if unit.note:
         print(f"note: {unit.note}")
     return report
+
+
+def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
+    """Train or reuse the model, fit the map, score every crop offset, write the files."""
+    # Checked before any slow work (the schema has already checked they are integers).
+    curve_queries = integer_at_least("diagnose.curve_queries", cfg.diagnose.curve_queries, 0)
+    table3_queries = integer_at_least("diagnose.table3_queries", cfg.diagnose.table3_queries, 0)
+    done = trained(cfg, device, world, map_size=True)
+    choices = HydraConfig.get().runtime.choices
+    quiet = bool(cfg.quiet)
+    test = load_split(done.dataset, "test", quiet)
+    write_skipped(done.dataset, done.run_dir)
+    method = done.method
+    relocalizer = method.relocalizer(device)
+    relocalizer.fit(done.train[1], [f.pose for f in done.train[0]], quiet=quiet)
+    queries = diagnose(relocalizer, *test, quiet=quiet)
+    settings = {
+        "crops": "every offset at stride 1 (the configured crop search is not used)",
+        "backbone": choices["backbone"],
+        "backbone_options": method.part_options["backbone"],
+        "index": choices["index"],
+        "index_options": method.part_options["index"],
+        "retrieval_k": method.query.retrieval_k,
+        "scoring": "plain (every window through the whole network)",
+        "input_size": int(relocalizer.backbone.input_size),
+        "crop_scale": relocalizer.crop_scale,
+        "query_batch_size": method.query.batch_size,
+        "dataset": choices["dataset"],
+        "scene": scene_name(cfg, choices),
+        "dataset_settings": dataset_settings(cfg),
+        "map_images": len(done.train[0]),
+        "test_queries": len(test[0]),
+        "checkpoint": str(done.checkpoint),
+        "curve_queries": curve_queries,
+        "table3_queries": table3_queries,
+        "relocfw_version": VERSION,
+    }
+    write_diagnosis(
+        scene_name(cfg, choices),
+        queries,
+        test[1],
+        done.run_dir,
+        settings,
+        curve_queries,
+        table3_queries,
+        unit=unit_of(done.dataset),
+    )

@@ -1,4 +1,9 @@
-"""`relocfw task=localize`: poses of new images from a saved model."""
+"""task=localize: poses of new images from a saved model (localize.model, localize.images).
+
+The model file brings its network, map, crop search and query options; each query.*
+value that is set (not null) replaces the file's. localize.backend=onnx runs the
+network that task=export wrote, with onnxruntime.
+"""
 
 from __future__ import annotations
 
@@ -8,22 +13,43 @@ import io
 import re
 from pathlib import Path
 
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from relocfw.app.config_schema import name_of
+from relocfw.app.methods import in_query_terms, query_values
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import read_rgb
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.progress import Progress
 from relocfw.core.values import Localization
 from relocfw.model.checkpoints import write_text_atomic
+from relocfw.model.distributed import World
+from relocfw.model.model_file import load_model
+from relocfw.model.onnx_backbone import check_onnx_scoring, onnx_relocalizer
+from relocfw.model.onnx_export import onnx_path, require
 from relocfw.report.evaluation import ANSWER_COLUMNS, POSE_COLUMNS, answer_cells
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 COLUMNS = ("image", "timestamp", *POSE_COLUMNS, *ANSWER_COLUMNS)
+TIMESTAMP_NAME = re.compile(r"\d+(\.\d+)?")
+
+
+def model_file(value: str | None, key: str) -> Path:
+    """The model file a task reads, from its config key (localize.model, export.model)."""
+    if not value:
+        raise ConfigError(f"{key} is not set: pass {key}=FILE (a model.relocfw from a run)")
+    return Path(value).expanduser()
 
 
 def find_images(pattern: str) -> list[Path]:
     """Images named by a file, a folder (every image in it) or a glob pattern."""
     if not pattern:
-        raise ConfigError("images is not set: pass images=FILE, images=DIR or images='DIR/*.png'")
+        raise ConfigError(
+            "localize.images is not set: pass localize.images=FILE, localize.images=DIR "
+            "or localize.images='DIR/*.png'"
+        )
     path = Path(pattern).expanduser()
     if path.is_dir():
         found = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -32,11 +58,8 @@ def find_images(pattern: str) -> list[Path]:
     else:
         found = sorted(Path(p) for p in glob.glob(str(path)))
     if not found:
-        raise DataError(f"images={pattern}: no image files found")
+        raise DataError(f"localize.images={pattern}: no image files found")
     return found
-
-
-TIMESTAMP_NAME = re.compile(r"\d+(\.\d+)?")
 
 
 def timestamp_of(path: Path, position: int) -> str:
@@ -86,3 +109,39 @@ def localize_images(
         f"{Path(run_dir) / 'localization.csv'}"
     )
     return answers
+
+
+def load_for_localize(cfg: DictConfig, device: torch.device) -> Relocalizer:
+    """The model file's Relocalizer with the query.* values that are set, its network
+    run by torch or onnxruntime (localize.backend)."""
+    model = model_file(cfg.localize.model, "localize.model")
+    overrides = query_values(cfg)
+    backend = name_of(cfg.localize.backend)
+    if backend == "onnx":
+        if overrides.get("scoring") is not None:
+            check_onnx_scoring(overrides["scoring"])
+        if device.type != "cpu":
+            raise ConfigError(
+                f"localize.backend=onnx runs the network with onnxruntime on the CPU; drop "
+                f"device={device} (or use localize.backend=torch)"
+            )
+        require("onnxruntime", "localize.backend=onnx")
+        network = onnx_path(model, cfg.export.out)
+        if not network.is_file():
+            where = f" export.out={cfg.export.out}" if cfg.export.out else ""
+            raise DataError(
+                f"ONNX network not found: {network}; run relocfw task=export "
+                f"export.model={model}{where} first"
+            )
+    try:
+        relocalizer = load_model(model, device, overrides)
+    except ConfigError as error:
+        raise in_query_terms(error) from error
+    return relocalizer if backend == "torch" else onnx_relocalizer(relocalizer, network)
+
+
+def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
+    relocalizer = load_for_localize(cfg, device)
+    images = find_images(str(cfg.localize.images or ""))
+    run_dir = Path(HydraConfig.get().runtime.output_dir)
+    localize_images(relocalizer, images, run_dir, bool(cfg.quiet))

@@ -1,0 +1,71 @@
+"""One method's run on a test split and its result files (task=relocalize, compare)."""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from relocfw.core.json_output import strict_json
+from relocfw.core.pipeline import Relocalizer
+from relocfw.data.frames import Frame
+from relocfw.model.checkpoints import write_text_atomic
+from relocfw.report.evaluation import MethodResult, evaluate, per_image_csv, summarise
+from relocfw.report.table import format_table
+from relocfw.report.units import METRES, PositionUnit, json_note, relabel_row, text_note
+
+Split = tuple[Sequence[Frame], Sequence[np.ndarray]]
+
+
+def safe_name(name: str) -> str:
+    """A scene's or method's name as a file name: letters, digits, - and _ only."""
+    return "".join(c if c.isalnum() or c in "-_" else "_" for c in name)
+
+
+def run_method(
+    method: str, relocalizer: Relocalizer, train: Split, test: Split, quiet: bool = False
+) -> tuple[MethodResult, np.ndarray]:
+    """Fit the map on the training split and relocalize the test split.
+
+    Returns:
+        The method's answers and the map's [N, D] training descriptors.
+    """
+    features = relocalizer.fit(train[1], [f.pose for f in train[0]], quiet=quiet)
+    return evaluate(method, relocalizer, *test, quiet=quiet), features
+
+
+def summary_csv(summaries: Sequence[dict[str, Any]]) -> str:
+    """One row per method, one column per summary key (metrics, shares and costs)."""
+    stream = io.StringIO()
+    # Sampled methods carry extra uncertainty columns: the union, in first-seen order.
+    fields = list(dict.fromkeys(key for summary in summaries for key in summary))
+    writer = csv.DictWriter(stream, fieldnames=fields, restval="")
+    writer.writeheader()
+    writer.writerows(summaries)
+    return stream.getvalue()
+
+
+def write_results(
+    results: Sequence[MethodResult], run_dir: Path, name: str = "", unit: PositionUnit = METRES
+) -> str:
+    """results{name}.csv (per query), summary{name}.json and .csv (per method) and
+    table{name}.txt; returns the table.
+
+    Each file names the positions' unit as it is written: table{name}.txt starts with
+    the unit's note, every summary row (JSON and CSV) carries it as `units_note`, and
+    results{name}.csv has the unit in its column names. Files from earlier runs in
+    `run_dir` are replaced, never annotated.
+    """
+    summaries = [summarise(r) for r in results]
+    rows = [relabel_row(summary, unit) | json_note(unit) for summary in summaries]
+    run_dir = Path(run_dir)
+    write_text_atomic(per_image_csv(results, unit), run_dir / f"results{name}.csv")
+    write_text_atomic(strict_json(rows), run_dir / f"summary{name}.json")
+    write_text_atomic(summary_csv(rows), run_dir / f"summary{name}.csv")
+    table = format_table(summaries, unit)
+    write_text_atomic(text_note(unit) + table + "\n", run_dir / f"table{name}.txt")
+    return table

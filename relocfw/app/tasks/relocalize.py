@@ -1,0 +1,103 @@
+"""task=relocalize (the main job): train or reuse the model, fit the map, relocalize
+the test split beside the baselines, and save the model file."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+from relocfw.app.config_schema import Baseline, name_of
+from relocfw.app.methods import centre_label, dataset_settings, scene_name
+from relocfw.app.results import Split, run_method, write_results
+from relocfw.app.splits import load_split, write_skipped
+from relocfw.app.tasks.train import trained
+from relocfw.core.pipeline import Relocalizer
+from relocfw.core.query_options import QueryOptions
+from relocfw.core.version import VERSION
+from relocfw.data.frames import mean_pose
+from relocfw.model.distributed import World
+from relocfw.model.model_file import save_model
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.report.evaluation import MethodResult, constant_answer, evaluate
+from relocfw.report.units import METRES, PositionUnit, unit_of
+
+BASELINES = tuple(b.value for b in Baseline)
+
+
+def relocalize(
+    relocalizer: Relocalizer,
+    method: str,
+    train: Split,
+    test: Split,
+    run_dir: Path,
+    baselines: Sequence[str] = BASELINES,
+    centre_label: str = "posenet (centre crop)",
+    quiet: bool = False,
+    unit: PositionUnit = METRES,
+) -> list[MethodResult]:
+    """The main job after training: the method and its baselines, results written
+    with the positions' `unit` (relocfw.report.units.unit_of the dataset)."""
+    results = []
+    if "mean_pose" in baselines:
+        results.append(constant_answer("mean training pose", mean_pose(train[0]), test[0]))
+    method_result, _ = run_method(method, relocalizer, train, test, quiet)
+    options = relocalizer.options
+    if "posenet" in baselines and not (
+        isinstance(relocalizer.search, CentreCrop) and options.retrieval_k == 0
+    ):
+        # PoseNet: the centre crop of the same network and map, sampled as the method's
+        # network is (backbone.mc_samples), with its seed; no random crops.
+        plain = QueryOptions(
+            batch_size=options.batch_size,
+            sample_seed=options.sample_seed,
+            queries_at_once=options.queries_at_once,
+        )
+        centre = Relocalizer(
+            relocalizer.backbone, relocalizer.index, CentreCrop(), plain, relocalizer.device
+        )
+        # The map is already fitted; only the queries run again.
+        results.append(evaluate(centre_label, centre, *test, quiet=quiet))
+    results.append(method_result)
+    print(write_results(results, run_dir, unit=unit))
+    print(f"\nresults: {Path(run_dir) / 'results.csv'}, {Path(run_dir) / 'summary.json'}")
+    if unit.note:
+        print(f"note: {unit.note}")
+    return results
+
+
+def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
+    done = trained(cfg, device, world, map_size=True)
+    choices = HydraConfig.get().runtime.choices
+    quiet = bool(cfg.quiet)
+    test = load_split(done.dataset, "test", quiet)
+    write_skipped(done.dataset, done.run_dir)
+    method = done.method
+    relocalizer = method.relocalizer(device)
+    relocalize(
+        relocalizer,
+        method.label,
+        done.train,
+        test,
+        done.run_dir,
+        baselines=[name_of(b) for b in cfg.relocalize.baselines],
+        centre_label=centre_label(cfg, choices),
+        quiet=quiet,
+        unit=unit_of(done.dataset),
+    )
+    metadata = {
+        "method": method.label,
+        "dataset": choices["dataset"],
+        "scene": scene_name(cfg, choices),
+        "dataset_settings": dataset_settings(cfg),
+        "map_images": len(done.train[0]),
+        "checkpoint": str(done.checkpoint),
+        "relocfw_version": VERSION,
+    }
+    model = save_model(done.run_dir / "model.relocfw", relocalizer, method.part_options, metadata)
+    print(
+        f"model file: {model}  (relocfw task=localize localize.model={model} localize.images=...)"
+    )
