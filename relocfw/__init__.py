@@ -1,7 +1,7 @@
 """relocfw: plugin-based visual relocalization (6-DoF pose from one RGB image).
 
 The package is five parts, imports running one way (app -> report -> model, data ->
-core), checked by tests/test_layout.py:
+core), checked by tests/core/test_layout.py:
 
 - `relocfw.core`: the plugin interfaces, values, the `Relocalizer` pipeline and its
   stages (scorer, search loop, sampling, retrieval), `QueryOptions`, geometry, imaging,

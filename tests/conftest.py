@@ -30,6 +30,16 @@ TINY_SCENE = [
 TINY_OVERRIDES = TINY_MODEL + TINY_SCENE
 
 
+APP_TESTS = Path(__file__).parent / "app"
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Every test under tests/app/ runs the CLI end to end: mark it slow."""
+    for item in items:
+        if APP_TESTS in Path(item.fspath).parents:
+            item.add_marker(pytest.mark.slow)
+
+
 @pytest.fixture
 def stairs_sample() -> Path:
     """The real 7-Scenes Stairs frames in ../shared (never copied into the repo)."""

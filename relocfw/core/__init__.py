@@ -1,5 +1,5 @@
 """The core: plugin interfaces, values, the Relocalizer pipeline and its helpers.
 
-Imports nothing from relocfw's other parts (tests/test_layout.py checks it): a plugin
+Imports nothing from relocfw's other parts (tests/core/test_layout.py checks it): a plugin
 builds on this part alone.
 """

@@ -28,7 +28,7 @@ from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
 from tests.conftest import TINY_OVERRIDES
-from tests.test_cli import relocfw
+from tests.app.test_cli import relocfw
 
 # relocfw imports neither package until it needs one, so the skips can follow the imports.
 pytest.importorskip("onnx", reason='onnx not installed (pip install "relocfw[onnx]")')
@@ -340,7 +340,7 @@ def test_cli_export_onto_the_model_file_is_refused_in_one_line(trained_model, tm
 
 
 def docs_code_blocks():
-    text = (Path(__file__).resolve().parents[1] / "docs" / "onnx.md").read_text()
+    text = (Path(__file__).resolve().parents[2] / "docs" / "onnx.md").read_text()
     return re.findall(r"```python\n(.*?)```", text, flags=re.DOTALL)
 
 

@@ -33,7 +33,7 @@ from relocfw.data.colmap_format import (
     write_model,
 )
 from tests.conftest import TINY_MODEL
-from tests.test_cli import relocfw
+from tests.app.test_cli import relocfw
 
 CAMERA = ColmapCamera(1, "PINHOLE", 48, 36, (40.0, 41.0, 24.0, 18.0))
 NO_POINT = 2**64 - 1  # COLMAP's "no 3-D point" id, as uint64

@@ -14,10 +14,10 @@ import torch.distributed as dist
 from relocfw.core.errors import DataError
 from relocfw.model.training import train_backbone
 from tests.conftest import TINY_OVERRIDES
-from tests.ddp_worker import DROPOUT, TinyConvPose, training_data
+from tests.model.ddp_worker import DROPOUT, TinyConvPose, training_data
 
 WORKER = Path(__file__).with_name("ddp_worker.py")
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 pytestmark = pytest.mark.skipif(
     not dist.is_available() or not dist.is_gloo_available(), reason="torch without gloo"

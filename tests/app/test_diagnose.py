@@ -25,8 +25,8 @@ from relocfw.report.diagnosis import (
     summarise_headroom,
 )
 from tests.conftest import TINY_OVERRIDES
-from tests.test_cli import relocfw
-from tests.test_pipeline import CountingPoseNet
+from tests.app.test_cli import relocfw
+from tests.core.test_pipeline import CountingPoseNet
 
 
 def constructed_queries():

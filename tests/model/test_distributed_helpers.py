@@ -1,6 +1,6 @@
 """The single-process side of data-parallel training: seeds, random streams, batch norm.
 
-No process group is needed here (tests/test_distributed.py runs real ones), nor a GPU:
+No process group is needed here (tests/model/test_distributed.py runs real ones), nor a GPU:
 converting to SyncBatchNorm builds modules only, and the CUDA stream calls are stubbed.
 """
 
@@ -20,7 +20,7 @@ from relocfw.model.distributed import (
     synchronise_batch_norm,
 )
 from relocfw.model.training import TrainSettings, train_backbone
-from tests.ddp_worker import TinyConvPose, training_data
+from tests.model.ddp_worker import TinyConvPose, training_data
 
 CPU, CUDA = torch.device("cpu"), torch.device("cuda", 1)
 

@@ -14,7 +14,7 @@ from relocfw.data.folder import PoseFolder
 from relocfw.data.on_error import OnError
 from relocfw.data.tum import TumDataset, associate, read_trajectory
 from relocfw.model.training import TrainingImages
-from tests.formats import assert_same_poses, write_cambridge, write_folder, write_tum
+from tests.data.formats import assert_same_poses, write_cambridge, write_folder, write_tum
 
 
 def test_tum_round_trip(tiny_scene, tmp_path):

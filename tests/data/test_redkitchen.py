@@ -8,7 +8,7 @@ import pytest
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import SevenScenes
 
-REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-redkitchen"
+REDKITCHEN = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes-redkitchen"
 
 
 @pytest.fixture

@@ -11,7 +11,7 @@ from relocfw.data.frames import Frame
 from relocfw.report.evaluation import MethodResult
 from relocfw.report.seed_comparison import seed_comparison, seed_markdown
 from tests.conftest import TINY_OVERRIDES
-from tests.test_cli import relocfw
+from tests.app.test_cli import relocfw
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 

@@ -21,7 +21,7 @@ class SamplesSeen(PoseNet):
     """Records how many dropout samples each forward pass ran with, and its batch."""
 
     # Declared, so the pipeline does not measure it with passes of its own (which
-    # would be among the calls recorded); tests/test_sampling_cost.py measures it.
+    # would be among the calls recorded); tests/core/test_sampling_cost.py measures it.
     sample_share = 0.25
 
     def __init__(self, variant: str = "kendall", samples: int = 8, crop_scale: float = 1.5):

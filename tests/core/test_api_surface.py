@@ -5,7 +5,7 @@ members with their signatures and the value types' fields. A removed name, membe
 field, or a changed signature, fails here; additions pass. After a deliberate
 addition, record it:
 
-    .venv/bin/python tests/test_api_surface.py --write
+    .venv/bin/python tests/core/test_api_surface.py --write
 """
 
 from __future__ import annotations

@@ -24,8 +24,8 @@ from relocfw.data.colmap import UNITS_NOTE
 from relocfw.data.frames import Frame
 from relocfw.report.evaluation import MethodResult
 from tests.conftest import TINY_MODEL
-from tests.test_cli import relocfw
-from tests.test_colmap import named_poses, project
+from tests.app.test_cli import relocfw
+from tests.data.test_colmap import named_poses, project
 
 # What says metres in a report: a key or column in metres (`position_error_m`,
 # `median_position_m_rejecting_10%`), a title in metres ("med pos (m)", "(m, deg)"),

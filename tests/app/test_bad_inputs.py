@@ -15,8 +15,8 @@ from relocfw.app.devices import pick_device
 from relocfw.core.errors import ConfigError
 from relocfw.model.checkpoints import load_checkpoint
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
-from tests.formats import write_cambridge, write_folder, write_tum
-from tests.test_cli import relocfw
+from tests.data.formats import write_cambridge, write_folder, write_tum
+from tests.app.test_cli import relocfw
 
 
 def replace_line(path, number, text):

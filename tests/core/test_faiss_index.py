@@ -106,7 +106,7 @@ def test_fitting_in_many_chunks_builds_the_same_index(descriptors, options):
 def test_sweep_with_faiss_flat_answers_as_with_exhaustive(tiny_scene):
     from relocfw.data.frames import read_images
     from relocfw.data.sevenscenes import load_sevenscenes
-    from tests.test_shared_scoring import tiny_posenet
+    from tests.core.test_shared_scoring import tiny_posenet
 
     train = read_images(load_sevenscenes(tiny_scene, None, "train"), quiet=True)
     test = read_images(load_sevenscenes(tiny_scene, None, "test"), quiet=True)

@@ -9,9 +9,9 @@ import pytest
 
 from relocfw.core.contracts import check_crop_search
 from tests.conftest import TINY_OVERRIDES
-from tests.test_cli import relocfw
+from tests.app.test_cli import relocfw
 
-GUIDE = Path(__file__).resolve().parents[1] / "docs" / "plugins.md"
+GUIDE = Path(__file__).resolve().parents[2] / "docs" / "plugins.md"
 
 
 def with_path(args, tmp_path, site):
