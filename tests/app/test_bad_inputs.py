@@ -14,9 +14,9 @@ import torch
 from relocfw.app.devices import pick_device
 from relocfw.core.errors import ConfigError
 from relocfw.model.checkpoints import load_checkpoint
+from tests.app.test_cli import relocfw
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
 from tests.data.formats import write_cambridge, write_folder, write_tum
-from tests.app.test_cli import relocfw
 
 
 def replace_line(path, number, text):

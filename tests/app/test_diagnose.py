@@ -24,8 +24,8 @@ from relocfw.report.diagnosis import (
     spearman,
     summarise_headroom,
 )
-from tests.conftest import TINY_OVERRIDES
 from tests.app.test_cli import relocfw
+from tests.conftest import TINY_OVERRIDES
 from tests.core.test_pipeline import CountingPoseNet
 
 

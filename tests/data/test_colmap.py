@@ -32,8 +32,8 @@ from relocfw.data.colmap_format import (
     read_images_text,
     write_model,
 )
-from tests.conftest import TINY_MODEL
 from tests.app.test_cli import relocfw
+from tests.conftest import TINY_MODEL
 
 CAMERA = ColmapCamera(1, "PINHOLE", 48, 36, (40.0, 41.0, 24.0, 18.0))
 NO_POINT = 2**64 - 1  # COLMAP's "no 3-D point" id, as uint64

@@ -27,8 +27,8 @@ from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
-from tests.conftest import TINY_OVERRIDES
 from tests.app.test_cli import relocfw
+from tests.conftest import TINY_OVERRIDES
 
 # relocfw imports neither package until it needs one, so the skips can follow the imports.
 pytest.importorskip("onnx", reason='onnx not installed (pip install "relocfw[onnx]")')

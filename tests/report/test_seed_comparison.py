@@ -10,8 +10,8 @@ from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
 from relocfw.report.evaluation import MethodResult
 from relocfw.report.seed_comparison import seed_comparison, seed_markdown
-from tests.conftest import TINY_OVERRIDES
 from tests.app.test_cli import relocfw
+from tests.conftest import TINY_OVERRIDES
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
