@@ -26,7 +26,7 @@ def test_scene_is_cached(tiny_scene):
         width=48, height=36, train_laps=2, train_frames_per_lap=8, test_frames=4
     )
     before = (tiny_scene / "scene.json").stat().st_mtime_ns
-    assert ensure_synthetic_scene(spec, tiny_scene.parents[2], quiet=True) == tiny_scene
+    assert ensure_synthetic_scene(spec, tiny_scene.parents[1], quiet=True) == tiny_scene
     assert (tiny_scene / "scene.json").stat().st_mtime_ns == before
 
 
