@@ -14,7 +14,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from relocfw.core.errors import DataError
-from relocfw.core.values import Pose, on_one_hemisphere
+from relocfw.core.values import Pose
 
 RIGID_TOLERANCE = 1e-2  # KinectFusion poses drift from orthonormal by ~1e-4; 1e-2 is clearly broken
 
@@ -36,14 +36,34 @@ def quaternion_to_matrix(quaternion: np.ndarray) -> np.ndarray:
 
 
 def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w first, on one hemisphere: w >= 0) of a rotation matrix.
+    """Unit quaternion (w first, w >= 0) of a rotation matrix.
 
-    A matrix that has drifted from orthonormal (KinectFusion's, by ~1e-4) is first
-    replaced by the rotation nearest to it (Frobenius norm), as scipy >= 1.17 does
-    itself: the answer is then the same on every scipy. scipy picks the largest of
-    w, x, y, z to divide by, so it stays accurate near 180-degree rotations.
+    Picks the largest of w, x, y, z to divide by, so the result stays accurate near
+    180-degree rotations where the trace formula loses all precision. Kept by hand, not
+    scipy's Rotation.from_matrix: scipy first snaps a drifted matrix to the nearest
+    rotation, which moves ground-truth quaternions by ~1e-9 (synthetic) to ~1e-4
+    (KinectFusion), enough to change a trained model (issue 21 measured it on command
+    1's demo model); these are the quaternions every model so far was trained on.
     """
-    return on_one_hemisphere(w_first(Rotation.from_matrix(nearest_rotation(rotation)).as_quat()))
+    m = np.asarray(rotation, dtype=np.float64)
+    trace = m[0, 0] + m[1, 1] + m[2, 2]
+    candidates = (trace, m[0, 0], m[1, 1], m[2, 2])
+    largest = int(np.argmax(candidates))
+    if largest == 0:
+        s = 2.0 * np.sqrt(1.0 + trace)
+        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+    elif largest == 1:
+        s = 2.0 * np.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
+        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+    elif largest == 2:
+        s = 2.0 * np.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
+        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+    else:
+        s = 2.0 * np.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
+        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
 
 
 def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
