@@ -80,11 +80,6 @@ class QueryOptions:
                 "(use scoring=shared)"
             )
 
-    @property
-    def samples_pose(self) -> bool:
-        """True when the answer is sampled from random windows of the chosen crop."""
-        return self.crop_samples > 0
-
     def replace(self, **changes: Any) -> QueryOptions:
         """These options with some changed (checked again); None keeps a value."""
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})

@@ -123,8 +123,7 @@ class Scorer:
 
     def plain(self, strip: Strip, corners: Sequence[Corner]) -> tuple[np.ndarray, NetworkAnswers]:
         """Map distances [n] and network answers of n strip windows (scoring=plain)."""
-        answers = self.forward(torch.stack([strip.cut(c) for c in corners]))
-        return self.map_distance(answers.features), answers
+        return self.plain_of_windows(torch.stack([strip.cut(c) for c in corners]))
 
     def plain_together(
         self, requests: Sequence[tuple[Strip, Sequence[Corner]]]
@@ -147,6 +146,7 @@ class Scorer:
         return split
 
     def plain_of_windows(self, windows: torch.Tensor) -> tuple[np.ndarray, NetworkAnswers]:
+        """Map distances [n] and network answers of n uint8 windows [n, 3, s, s]."""
         answers = self.forward(windows)
         return self.map_distance(answers.features), answers
 
