@@ -52,13 +52,8 @@ def model_frames(relocalizer, cache_dir: Path, split: str = "test") -> list[Fram
 
 def with_search(relocalizer: Relocalizer, search: CropSearch) -> Relocalizer:
     """A loaded pipeline with another crop search: the same network, fitted map,
-    options, map poses and metadata (`Relocalizer.replace` keeps the search)."""
-    swapped = Relocalizer(
-        relocalizer.backbone, relocalizer.index, search, relocalizer.options, relocalizer.device
-    )
-    swapped.map_poses = relocalizer.map_poses
-    swapped.metadata = relocalizer.metadata
-    return swapped
+    options, map poses and metadata."""
+    return relocalizer.replace(search=search)
 
 
 def device_name(device: str) -> str:

@@ -1,4 +1,7 @@
-"""Bad input of every kind ends in one clear message naming the file or key, exit 2."""
+"""Bad input of every kind ends in one clear message naming the file or key, exit 2.
+
+The cases run the command in this process (tests.cli_runs.relocfw_here); one of each
+path also runs in a process of its own."""
 
 import os
 import shutil
@@ -14,7 +17,7 @@ import torch
 from relocfw.app.devices import pick_device
 from relocfw.core.errors import ConfigError
 from relocfw.model.checkpoints import load_checkpoint
-from tests.app.test_cli import relocfw
+from tests.cli_runs import relocfw, relocfw_here
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
 from tests.data.formats import write_cambridge, write_folder, write_tum
 
@@ -140,10 +143,19 @@ def test_bad_dataset_input(case, datasets, tmp_path):
     root = tmp_path / "data"
     shutil.copytree(datasets, root)
     args, message = damage(case, root)
-    result = relocfw([*TINY_MODEL, *args], tmp_path)
+    result = relocfw_here([*TINY_MODEL, *args], tmp_path)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr
     assert result.stderr.count("error:") == 1 and "Traceback" not in result.stderr
+
+
+def test_a_bad_dataset_ends_a_real_process_with_one_line(datasets, tmp_path):
+    root = tmp_path / "data"
+    shutil.copytree(datasets, root)
+    args, message = damage("tum nan", root)
+    result = relocfw([*TINY_MODEL, *args], tmp_path)
+    assert result.returncode == 2
+    assert result.stderr == f"error: {message}\n"
 
 
 def test_skip_lists_what_it_left_out(datasets, tmp_path):
@@ -228,7 +240,7 @@ def test_bad_model_files(trained_run, tmp_path, content, message):
     bad = tmp_path / "bad.relocfw"
     bad.write_bytes(content((run_dir / "model.relocfw").read_bytes()))
     args = ["task=localize", f"localize.model={bad}", f"localize.images={tmp_path}"]
-    result = relocfw(args, tmp_path)
+    result = relocfw_here(args, tmp_path)
     assert result.returncode == 2 and message in result.stderr and str(bad) in result.stderr
 
 
@@ -239,7 +251,7 @@ def test_model_file_of_another_format(trained_run, tmp_path):
     old = tmp_path / "old.relocfw"
     torch.save(payload, old)
     # In the spellings before issue 21: model= and images= are read as localize.*.
-    result = relocfw(["task=localize", f"model={old}", f"images={tmp_path}"], tmp_path)
+    result = relocfw_here(["task=localize", f"model={old}", f"images={tmp_path}"], tmp_path)
     assert result.returncode == 2 and "model format 99" in result.stderr
     notes = result.stderr.splitlines()[:2]
     assert notes == [
@@ -250,7 +262,7 @@ def test_model_file_of_another_format(trained_run, tmp_path):
 
 def test_localize_without_images(trained_run, tmp_path):
     home, run_dir = trained_run
-    result = relocfw(
+    result = relocfw_here(
         [
             "task=localize",
             f"localize.model={run_dir / 'model.relocfw'}",
@@ -263,7 +275,9 @@ def test_localize_without_images(trained_run, tmp_path):
 
 def test_killed_training_resumes(tmp_path):
     """SIGKILL mid-training, run again: it continues from the last checkpoint."""
-    args = [*TINY_OVERRIDES, "task=train", "train.iterations=400", "train.checkpoint_every=10"]
+    # Long enough that the kill lands mid-training (about 0.1 s a step on one of 2
+    # cores), short enough that the resumed run is quick.
+    args = [*TINY_OVERRIDES, "task=train", "train.iterations=150", "train.checkpoint_every=10"]
     env_cache = tmp_path / "cache"
     env = {**os.environ, "RELOCFW_CACHE": str(env_cache)}
     process = subprocess.Popen(
@@ -288,7 +302,7 @@ def test_killed_training_resumes(tmp_path):
     assert again.returncode == 0, again.stderr
     assert "resumed from step" in again.stdout
     step = int(again.stdout.split("resumed from step ")[1].split(")")[0])
-    assert 10 <= step < 400 and step % 10 == 0
+    assert 10 <= step < 150 and step % 10 == 0
 
 
 def test_library_load_and_localize(trained_run):
@@ -349,12 +363,13 @@ torch.cuda.device_count = lambda: 2
     ids=["malformed", "beyond the devices"],
 )
 def test_a_bad_device_index_ends_the_command_with_one_message(tmp_path, device, fake, message):
-    env = {}
+    args = [*TINY_OVERRIDES, f"device={device}"]
     if fake:  # this machine has no GPU: a sitecustomize makes torch report two
         (tmp_path / "fake").mkdir()
         (tmp_path / "fake" / "sitecustomize.py").write_text(FAKE_TWO_GPUS)
-        env["PYTHONPATH"] = str(tmp_path / "fake")
-    result = relocfw([*TINY_OVERRIDES, f"device={device}"], tmp_path, **env)
+        result = relocfw(args, tmp_path, PYTHONPATH=str(tmp_path / "fake"))
+    else:
+        result = relocfw_here(args, tmp_path)
     assert result.returncode == 2, result.stderr
     assert message in result.stderr
     assert result.stderr.count("error:") == 1 and "Traceback" not in result.stderr

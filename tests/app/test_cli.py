@@ -1,12 +1,11 @@
-"""The `relocfw` command end to end, on a tiny configuration, in a subprocess."""
+"""The `relocfw` command end to end, on a tiny configuration: real processes for the
+runs that work, this process (tests.cli_runs.relocfw_here) for refusals."""
 
 import csv
 import inspect
 import json
-import os
 import re
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
@@ -16,20 +15,8 @@ import yaml
 from relocfw.app import cli
 from relocfw.app.config_schema import Task
 from relocfw.app.spellings import rewrite
+from tests.cli_runs import relocfw, relocfw_here
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
-
-
-def relocfw(args, tmp_path, cache=None, **env_extra):
-    """Run the CLI in a subprocess, as a user would."""
-    env = {**os.environ, "RELOCFW_CACHE": str(cache or tmp_path / "cache"), **env_extra}
-    return subprocess.run(
-        [sys.executable, "-m", "relocfw", *args],
-        cwd=tmp_path,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
 
 
 @pytest.fixture(scope="module")
@@ -186,12 +173,23 @@ def test_compare_of_the_dropout_variants(tmp_path, cache):
 )
 def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):
     tiny = TINY_MODEL if "dataset=sevenscenes" in args else TINY_OVERRIDES
-    result = relocfw([*tiny, *args], tmp_path, cache)
+    result = relocfw_here([*tiny, *args], tmp_path, cache)
     assert result.returncode == 2
     assert message in result.stderr
     (line,) = result.stderr.strip().splitlines()
     assert line.startswith("error: ") and "Traceback" not in result.stderr
     assert "model:" not in result.stdout  # refused before any training
+
+
+def test_a_refusal_ends_a_real_process_with_one_line_and_status_2(tmp_path, cache):
+    """The refusals above run in this process; one in a process of its own shows the
+    exit status and the streams a user sees."""
+    result = relocfw([*TINY_OVERRIDES, "k=500"], tmp_path, cache)
+    assert result.returncode == 2
+    assert result.stderr == (
+        "error: k=500 is more clusters than training descriptors (16); choose k <= 16\n"
+    )
+    assert "model:" not in result.stdout
 
 
 @pytest.mark.parametrize(
@@ -210,7 +208,7 @@ def test_bad_options_end_in_one_clear_message(tmp_path, cache, args, message):
     ids=["type", "choice", "backend"],
 )
 def test_a_wrong_type_or_choice_fails_before_any_work_in_one_line(tmp_path, args, message):
-    result = relocfw([*TINY_OVERRIDES, *args], tmp_path)
+    result = relocfw_here([*TINY_OVERRIDES, *args], tmp_path)
     assert result.returncode == 2, result.stderr
     (line,) = [line for line in result.stderr.splitlines() if not line.startswith("note: ")]
     assert line.startswith(f"error: {message}"), result.stderr
@@ -222,7 +220,7 @@ def test_a_wrong_type_or_choice_fails_before_any_work_in_one_line(tmp_path, args
 def test_an_old_multirun_list_is_read_in_the_new_spelling(tmp_path):
     sweep = tmp_path / "multi"
     args = ["-m", "task=plugins", "scoring=plain,shared", f"hydra.sweep.dir={sweep}"]
-    result = relocfw(args, tmp_path)
+    result = relocfw_here(args, tmp_path)
     assert result.returncode == 0, result.stderr
     assert result.stderr.splitlines() == [
         "note: scoring= is now query.scoring= (read as query.scoring=plain,shared)"
@@ -275,7 +273,7 @@ def test_a_users_old_methods_file_still_works(tmp_path):
         "compare.reference=Nobody",
         f"hydra.searchpath=[file://{tmp_path / 'mine'}]",
     ]
-    result = relocfw(args, tmp_path)
+    result = relocfw_here(args, tmp_path)
     assert result.returncode == 2
     assert result.stderr.splitlines() == [
         "note: retrieval_k= is now query.retrieval_k= "
@@ -348,7 +346,7 @@ def test_corrupt_image_names_the_file(tmp_path, cache, tiny_scene):
     shutil.copytree(tiny_scene, root / "room")
     bad = root / "room" / "seq-01" / "frame-000004.color.png"
     bad.write_bytes(b"\x89PNG truncated")
-    result = relocfw(
+    result = relocfw_here(
         [*TINY_MODEL, "dataset=sevenscenes", f"dataset.root={root}", "dataset.scene=room"],
         tmp_path,
         cache,
@@ -358,7 +356,7 @@ def test_corrupt_image_names_the_file(tmp_path, cache, tiny_scene):
 
 
 def test_help_lists_the_options_with_their_package(tmp_path):
-    result = relocfw(["--help"], tmp_path)
+    result = relocfw_here(["--help"], tmp_path)
     assert result.returncode == 0
     assert "crop (CropSearch):" in result.stdout and "index (SimilarityIndex):" in result.stdout
     for option in ("centre", "ga", "sweep", "exhaustive", "kmeans", "posenet", "tum"):

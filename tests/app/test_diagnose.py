@@ -24,7 +24,7 @@ from relocfw.report.diagnosis import (
     spearman,
     summarise_headroom,
 )
-from tests.app.test_cli import relocfw
+from tests.cli_runs import relocfw, relocfw_here
 from tests.conftest import TINY_OVERRIDES
 from tests.core.test_pipeline import CountingPoseNet
 
@@ -184,7 +184,7 @@ def test_cli_diagnose_writes_table_windows_and_figures(tmp_path):
         "diagnose_offset_curves.png",
     ]
 
-    bad = relocfw([*TINY_OVERRIDES, "task=diagnose", "diagnose.table3_queries=-1"], tmp_path)
+    bad = relocfw_here([*TINY_OVERRIDES, "task=diagnose", "diagnose.table3_queries=-1"], tmp_path)
     assert bad.returncode == 2
     assert "diagnose.table3_queries must be at least 0, got -1" in bad.stderr
     assert "Traceback" not in bad.stderr

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from relocfw.core.contracts import check_crop_search
-from tests.app.test_cli import relocfw
+from tests.cli_runs import relocfw
 from tests.conftest import TINY_OVERRIDES
 
 GUIDE = Path(__file__).resolve().parents[2] / "docs" / "plugins.md"

@@ -32,7 +32,7 @@ from relocfw.data.colmap_format import (
     read_images_text,
     write_model,
 )
-from tests.app.test_cli import relocfw
+from tests.cli_runs import relocfw
 from tests.conftest import TINY_MODEL
 
 CAMERA = ColmapCamera(1, "PINHOLE", 48, 36, (40.0, 41.0, 24.0, 18.0))

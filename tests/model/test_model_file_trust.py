@@ -17,7 +17,7 @@ from relocfw.core.errors import ConfigError, DataError
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.posenet import PoseNet
-from tests.app.test_cli import relocfw
+from tests.cli_runs import relocfw
 
 OPTIONS = {"backbone": {"input_size": 32, "width": 0.125, "feature_dim": 16}}
 

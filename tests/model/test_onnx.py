@@ -27,7 +27,7 @@ from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
-from tests.app.test_cli import relocfw
+from tests.cli_runs import relocfw, relocfw_here
 from tests.conftest import TINY_OVERRIDES
 
 # relocfw imports neither package until it needs one, so the skips can follow the imports.
@@ -319,7 +319,7 @@ def test_cli_bad_backend_inputs(trained_model, tmp_path, args, message):
     home, model, images = trained_model
     lone = tmp_path / "model.relocfw"  # a model file with no export beside it
     lone.write_bytes(model.read_bytes())
-    result = relocfw(
+    result = relocfw_here(
         ["task=localize", f"localize.model={lone}", f"localize.images={images}/*.png", *args],
         tmp_path,
         home,
@@ -332,7 +332,7 @@ def test_cli_export_onto_the_model_file_is_refused_in_one_line(trained_model, tm
     home, model, _ = trained_model
     lone = tmp_path / "m"
     lone.write_bytes(model.read_bytes())
-    result = relocfw(["task=export", "export.model=m", "export.out=./m"], tmp_path, home)
+    result = relocfw_here(["task=export", "export.model=m", "export.out=./m"], tmp_path, home)
     assert result.returncode == 2, result.stdout
     (line,) = result.stderr.strip().splitlines()
     assert "export.out=./m is the model file itself" in line

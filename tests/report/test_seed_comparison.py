@@ -10,7 +10,7 @@ from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
 from relocfw.report.evaluation import MethodResult
 from relocfw.report.seed_comparison import seed_comparison, seed_markdown
-from tests.app.test_cli import relocfw
+from tests.cli_runs import relocfw, relocfw_here
 from tests.conftest import TINY_OVERRIDES
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
@@ -100,7 +100,7 @@ def test_compare_over_two_training_seeds(tmp_path):
 )
 def test_bad_seed_lists_are_refused(tmp_path, seeds):
     args = [*TINY_OVERRIDES, "task=compare", "compare.seeds=[0,1]", seeds]
-    result = relocfw(args, tmp_path, tmp_path / "cache")
+    result = relocfw_here(args, tmp_path, tmp_path / "cache")
     assert result.returncode != 0
     assert "compare.seeds" in result.stderr and "Traceback" not in result.stderr
 

@@ -23,7 +23,7 @@ from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.colmap import UNITS_NOTE
 from relocfw.data.frames import Frame
 from relocfw.report.evaluation import MethodResult
-from tests.app.test_cli import relocfw
+from tests.cli_runs import relocfw
 from tests.conftest import TINY_MODEL
 from tests.data.test_colmap import named_poses, project
 
