@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import inspect
 import os
+import re
 from pathlib import Path
 
 import pytest
@@ -48,10 +50,49 @@ def pytest_configure(config: pytest.Config) -> None:
     os.environ["OMP_NUM_THREADS"] = str(threads)
 
 
+# What a test or fixture that starts a process of its own says in its source: the CLI
+# through tests.cli_runs.relocfw, pip, torchrun, a benchmark script.
+STARTS_A_PROCESS = re.compile(r"\brelocfw\(|\bsubprocess\.|\bPopen\(|\brun_script\(")
+
+
+def source_of(function: object) -> str:
+    try:
+        return inspect.getsource(function)
+    except (OSError, TypeError):
+        return ""
+
+
+def starts_a_process(item: pytest.Item) -> bool:
+    """Whether the test, a fixture it uses, or a function of its module that either
+    calls, starts a process (read from the source, one call deep)."""
+    functions = [getattr(item, "function", None)]
+    fixtures = getattr(item, "_fixtureinfo", None)
+    if fixtures is not None:
+        functions += [d.func for defs in fixtures.name2fixturedefs.values() for d in defs]
+    module = getattr(item, "module", None)
+    helpers = (
+        {
+            name: value
+            for name, value in vars(module).items()
+            if inspect.isfunction(value) and value.__module__ == module.__name__
+        }
+        if module is not None
+        else {}
+    )
+    for function in functions:
+        source = source_of(function)
+        called = [h for name, h in helpers.items() if re.search(rf"\b{name}\(", source)]
+        if any(STARTS_A_PROCESS.search(text) for text in [source, *map(source_of, called)]):
+            return True
+    return False
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Every test under tests/app/ runs the CLI end to end: mark it slow."""
+    """Every test under tests/app/ runs the CLI end to end, and every other test that
+    starts a process (directly or through a fixture) pays seconds for it: mark them
+    slow, so `pytest -m "not slow"` is the inner loop."""
     for item in items:
-        if APP_TESTS in Path(item.fspath).parents:
+        if APP_TESTS in Path(item.fspath).parents or starts_a_process(item):
             item.add_marker(pytest.mark.slow)
 
 
