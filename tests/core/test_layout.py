@@ -17,14 +17,15 @@ import pytest
 import relocfw
 
 PACKAGE = Path(relocfw.__file__).parent
-PARTS = ("core", "model", "data", "report", "app")
+PARTS = ("core", "model", "data", "report", "structure", "app")
 # What each part may import besides itself: app -> report -> model, data -> core.
 MAY_IMPORT = {
     "core": set(),
     "model": {"core"},
     "data": {"core"},
     "report": {"core", "model", "data"},
-    "app": {"core", "model", "data", "report", "plugins"},
+    "structure": {"core"},
+    "app": {"core", "model", "data", "report", "structure", "plugins"},
 }
 
 

@@ -1,0 +1,151 @@
+"""A camera's pose from 2-D/3-D correspondences: P3P in LO-RANSAC, then refinement.
+
+The solver is PoseLib's (Larsson and contributors; `poselib.estimate_absolute_pose`):
+minimal P3P samples in locally optimised RANSAC, then a robust (Cauchy) non-linear
+refinement of the reprojection error over the inliers. It is an optional dependency
+(`pip install "relocfw[structure]"`), imported only when a pose is solved.
+benchmarks/structure_solvers.py compares it with pycolmap's solver.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from relocfw.core.camera import PinholeCamera
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.geometry import conjugate, quaternion_to_matrix
+from relocfw.core.options import integer_at_least
+from relocfw.core.values import Pose
+
+MINIMUM_CORRESPONDENCES = 4  # P3P's three plus one to choose among its solutions
+RANSAC_SEED = 0  # fixed: the same correspondences give the same pose on every run
+
+
+@dataclass(frozen=True)
+class AbsolutePose:
+    """The result of one absolute-pose solve.
+
+    Attributes:
+        pose: camera-to-world Pose (metres, quaternion w first), None when the solve
+            failed.
+        inliers: correspondences within the error bound of the pose found (0 when
+            none was found).
+        success: True when a pose was found with at least the required inliers.
+    """
+
+    pose: Pose | None
+    inliers: int
+    success: bool
+
+
+def failed(inliers: int = 0) -> AbsolutePose:
+    """The result of a solve that found no usable pose."""
+    return AbsolutePose(pose=None, inliers=inliers, success=False)
+
+
+def checked_correspondences(
+    points_2d: np.ndarray, points_3d: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """[N, 2] and [N, 3] float64 arrays of finite numbers, or a DataError naming the
+    argument at fault."""
+    try:
+        image = np.asarray(points_2d, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError("points_2d must be an [N, 2] array of numbers") from None
+    try:
+        world = np.asarray(points_3d, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DataError("points_3d must be an [N, 3] array of numbers") from None
+    if image.ndim != 2 or image.shape[1] != 2:
+        raise DataError(f"points_2d must be an [N, 2] array of pixels, got shape {image.shape}")
+    if world.ndim != 2 or world.shape[1] != 3:
+        raise DataError(f"points_3d must be an [N, 3] array of points, got shape {world.shape}")
+    if len(image) != len(world):
+        raise DataError(
+            f"points_2d has {len(image)} rows, points_3d {len(world)}; row i of each must "
+            "be one correspondence"
+        )
+    # NaN rows (e.g. keypoints lifted where depth was missing) must be dropped by the
+    # caller, who knows why they are NaN; passed on they would poison the solver.
+    for name, values in (("points_2d", image), ("points_3d", world)):
+        if not np.isfinite(values).all():
+            bad = int((~np.isfinite(values).all(axis=1)).sum())
+            raise DataError(f"{name} has {bad} rows with NaN or infinity; drop them before solving")
+    return image, world
+
+
+def pose_of_world_to_camera(quaternion: np.ndarray, translation: np.ndarray) -> Pose:
+    """The camera-to-world Pose of a world-to-camera rotation (w first) and
+    translation: camera = R world + t, so the centre is -R^T t and the rotation R^T."""
+    rotation = quaternion_to_matrix(quaternion)
+    centre = -rotation.T @ np.asarray(translation, dtype=np.float64)
+    q = np.asarray(quaternion, dtype=np.float64)
+    return Pose(centre, conjugate(q / np.linalg.norm(q)))
+
+
+def solve_absolute_pose(
+    points_2d: np.ndarray,
+    points_3d: np.ndarray,
+    camera: PinholeCamera,
+    max_error_px: float = 8.0,
+    min_inliers: int = 12,
+) -> AbsolutePose:
+    """The camera-to-world pose that projects `points_3d` onto `points_2d`.
+
+    Args:
+        points_2d: [N, 2] pixel (x, y) of keypoints in the image `camera` describes.
+        points_3d: [N, 3] world points in metres; row i is seen at row i of points_2d.
+            Any share may be outliers (wrong matches); RANSAC sorts them out.
+        camera: intrinsics of the image (undistorted pinhole).
+        max_error_px: the reprojection error in pixels under which a correspondence is
+            an inlier (> 0).
+        min_inliers: the fewest inliers a pose needs to count as found (>= 4).
+
+    Returns:
+        AbsolutePose. A solve that fails (fewer than 4 correspondences, no pose, fewer
+        than `min_inliers` inliers) returns success False and pose None; it never
+        raises, since failing is an expected outcome for a hard query.
+
+    Raises:
+        DataError: naming the argument when the arrays have the wrong shapes, differ
+            in length or hold NaN or infinity.
+        ConfigError: naming `max_error_px` or `min_inliers` when out of range, or when
+            poselib is not installed.
+    """
+    image, world = checked_correspondences(points_2d, points_3d)
+    try:
+        max_error = float(max_error_px)
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"max_error_px must be a number of pixels, got {max_error_px!r}"
+        ) from None
+    if not (math.isfinite(max_error) and max_error > 0):
+        raise ConfigError(f"max_error_px must be a positive number of pixels, got {max_error_px!r}")
+    min_inliers = integer_at_least("min_inliers", min_inliers, MINIMUM_CORRESPONDENCES)
+    try:
+        import poselib
+    except ImportError:
+        raise ConfigError(
+            'local-feature refinement needs poselib: pip install "relocfw[structure]"'
+        ) from None
+    if len(image) < MINIMUM_CORRESPONDENCES:
+        return failed()
+
+    camera_model = {
+        "model": "PINHOLE",
+        "width": camera.width,
+        "height": camera.height,
+        "params": [camera.fx, camera.fy, camera.cx, camera.cy],
+    }
+    ransac = {"max_reproj_error": max_error, "seed": RANSAC_SEED}
+    world_to_camera, info = poselib.estimate_absolute_pose(image, world, camera_model, ransac, {})
+    inliers = int(info.get("num_inliers", 0))
+    q = np.asarray(world_to_camera.q, dtype=np.float64)
+    t = np.asarray(world_to_camera.t, dtype=np.float64)
+    # PoseLib returns the identity with no inliers when RANSAC found nothing.
+    if inliers < min_inliers or not (np.isfinite(q).all() and np.isfinite(t).all()):
+        return failed(inliers)
+    return AbsolutePose(pose=pose_of_world_to_camera(q, t), inliers=inliers, success=True)
