@@ -8,6 +8,10 @@ quaternion). Both use the same camera axes (x right, y down, z forward: OpenCV's
 
 A COLMAP model has no scale of its own: positions come out in model units, not metres,
 unless the model was aligned to metric coordinates (e.g. `colmap model_aligner`).
+
+Each frame's `camera` is its COLMAP camera as a pinhole (PINHOLE, SIMPLE_PINHOLE, or a
+distortion model whose coefficients are all 0), None for a camera with lens distortion
+(`ColmapDataset.why_no_camera(name)` says why); a model has no depth maps.
 """
 
 from __future__ import annotations
@@ -30,7 +34,9 @@ from relocfw.core.values import Pose
 from relocfw.data.colmap_cameras import (
     images_with_cameras,
     model_cameras_file,
+    pinhole_of,
     read_model_cameras,
+    why_not_pinhole,
 )
 from relocfw.data.colmap_format import (
     ColmapCamera,
@@ -233,6 +239,8 @@ class ColmapDataset:
         cameras: the model's cameras (checked intrinsics) by CAMERA_ID; `camera(name)`
             gives the one an image was taken with.
         cameras_file: the cameras.bin or cameras.txt they were read from.
+        pinholes: each camera as a PinholeCamera (None with lens distortion), by
+            CAMERA_ID: the frames' `camera`.
     """
 
     metric: bool = False
@@ -277,6 +285,7 @@ class ColmapDataset:
             self.on_error,
         )
         self._camera_ids = {image.name: image.camera_id for image in registered}
+        self.pinholes = {key: pinhole_of(camera) for key, camera in self.cameras.items()}
         chosen = self._splits(registered, {"train": train, "test": test})
         self._frames = {
             split: self._existing_frames([i for i in registered if i.name in chosen[split]])
@@ -316,7 +325,7 @@ class ColmapDataset:
             except DataError as error:
                 self.on_error.handle(error)
                 continue
-            frames.append(Frame(image.name, path, pose))
+            frames.append(Frame(image.name, path, pose, camera=self.pinholes[image.camera_id]))
         return frames
 
     def frames(self, split: str) -> list[Frame]:
@@ -329,3 +338,11 @@ class ColmapDataset:
         if name not in self._camera_ids:
             raise DataError(f"{name!r} is not an image registered in {self.model_file}")
         return self.cameras[self._camera_ids[name]]
+
+    def why_no_camera(self, name: str) -> str:
+        """Why frame `name` has no pinhole camera, in one line ("" when it has one).
+
+        E.g. "camera 3 is OPENCV with lens distortion (-0.1 0.01 0 0)", for a message
+        such as "structure-based refinement needs undistorted images: ...".
+        """
+        return why_not_pinhole(self.camera(name))

@@ -1,7 +1,8 @@
-"""Reading depth maps: 16-bit PNGs in millimetres, as 7-Scenes stores them."""
+"""Reading depth maps: 16-bit PNGs of z in fixed units (7-Scenes: millimetres; TUM: 1/5000 m)."""
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -9,11 +10,13 @@ import cv2
 import numpy as np
 
 from relocfw.core.errors import ConfigError, DataError
+from relocfw.data.frames import Frame
 
 # Kinect depth with no reading: 0 in the redistributed 7-Scenes copies, 65535 in the
 # original archive. Neither is a distance (65.535 m is far beyond the sensor's range).
 NO_READING = (0, 65535)
 MILLIMETRES_PER_METRE = 1000.0
+TUM_UNITS_PER_METRE = 5000.0  # TUM RGB-D's depth PNGs: 5000 units per metre
 
 COLOUR_NAME = re.compile(r"^(?P<stem>.+)\.color\.(?:png|jpg|jpeg)$", re.IGNORECASE)
 
@@ -23,13 +26,19 @@ def positive_int(value: object) -> bool:
     return isinstance(value, int | np.integer) and not isinstance(value, bool) and value > 0
 
 
-def read_depth(path: str | Path, expected_size: tuple[int, int] | None = None) -> np.ndarray:
-    """A depth map in metres from a 16-bit PNG in millimetres.
+def read_depth(
+    path: str | Path,
+    expected_size: tuple[int, int] | None = None,
+    units_per_metre: float = MILLIMETRES_PER_METRE,
+) -> np.ndarray:
+    """A depth map in metres from a 16-bit PNG.
 
     Args:
         path: the PNG (7-Scenes: `frame-NNNNNN.depth.png`).
         expected_size: (width, height) the map must have (7-Scenes: (640, 480)); None
             accepts any size.
+        units_per_metre: what one metre is stored as: 1000 (millimetres, 7-Scenes and
+            the synthetic scene), 5000 (TUM RGB-D).
 
     Returns:
         [H, W] float32 depth along the camera's z axis in metres; NaN where the sensor
@@ -40,8 +49,10 @@ def read_depth(path: str | Path, expected_size: tuple[int, int] | None = None) -
         DataError: naming the file when it is missing, cannot be decoded, is not a
             single-channel 16-bit image (naming the type found), or its size is not
             `expected_size` (naming both).
-        ConfigError: when `expected_size` is not two positive integers.
+        ConfigError: when `expected_size` is not two positive integers, or
+            `units_per_metre` is not a positive finite number.
     """
+    scale = positive_scale(units_per_metre)
     if expected_size is not None:
         # Checked before the file, so a wrong call fails the same whatever the file.
         pair = isinstance(expected_size, tuple | list) and len(expected_size) == 2
@@ -61,7 +72,7 @@ def read_depth(path: str | Path, expected_size: tuple[int, int] | None = None) -
     if raw.dtype != np.uint16 or raw.ndim != 2:
         channels = 1 if raw.ndim == 2 else raw.shape[2]
         raise DataError(
-            f"{path}: expected a single-channel 16-bit depth PNG (millimetres), found "
+            f"{path}: expected a single-channel 16-bit depth PNG, found "
             f"{channels} channel(s) of {raw.dtype}"
         )
     if expected_size is not None:
@@ -70,9 +81,46 @@ def read_depth(path: str | Path, expected_size: tuple[int, int] | None = None) -
             raise DataError(
                 f"{path}: depth map is {raw.shape[1]}x{raw.shape[0]}, expected {width}x{height}"
             )
-    depth = raw.astype(np.float32) / np.float32(MILLIMETRES_PER_METRE)
+    depth = raw.astype(np.float32) / np.float32(scale)
     depth[np.isin(raw, NO_READING)] = np.nan
     return depth
+
+
+def positive_scale(units_per_metre: object) -> float:
+    """`units_per_metre` as a positive finite float, or a ConfigError naming it."""
+    valid = isinstance(units_per_metre, int | float | np.number) and not isinstance(
+        units_per_metre, bool
+    )
+    if not valid or not math.isfinite(units_per_metre) or units_per_metre <= 0:
+        raise ConfigError(
+            f"units_per_metre must be a positive number (1000 for millimetres), "
+            f"got {units_per_metre!r}"
+        )
+    return float(units_per_metre)
+
+
+def read_frame_depth(frame: Frame) -> np.ndarray | None:
+    """The depth map of a dataset frame in metres, or None when the frame has none.
+
+    The map must have the size of the frame's camera (the colour image's full
+    resolution) when the frame has a camera: a depth map of another size is not
+    registered to the image, and lifting keypoints with it would be silently wrong.
+
+    Args:
+        frame: a Frame; its `depth_path` and `depth_units_per_metre` are used.
+
+    Returns:
+        [H, W] float32 z in metres, NaN where there is no reading (see read_depth);
+        None when `frame.depth_path` is None.
+
+    Raises:
+        DataError: naming the depth file when it is missing, not a 16-bit
+            single-channel image, or not the camera's size.
+    """
+    if frame.depth_path is None:
+        return None
+    size = None if frame.camera is None else (frame.camera.width, frame.camera.height)
+    return read_depth(frame.depth_path, size, frame.depth_units_per_metre)
 
 
 def depth_path_of(image_path: str | Path) -> Path:
@@ -96,3 +144,43 @@ def depth_path_of(image_path: str | Path) -> Path:
             ".color.png), so its depth map cannot be found"
         )
     return image_path.with_name(f"{match.group('stem')}.depth.png")
+
+
+def encode_depth(depth: np.ndarray, units_per_metre: float = MILLIMETRES_PER_METRE) -> np.ndarray:
+    """The 16-bit pixels of a depth map in metres, as `read_depth` reads them back.
+
+    Args:
+        depth: [H, W] z in metres; NaN, infinite, not positive or beyond what 16 bits
+            hold (65.534 m in millimetres) means no reading.
+        units_per_metre: what one metre is stored as (1000: millimetres).
+
+    Returns:
+        [H, W] uint16, rounded to the nearest unit; 0 where there is no reading (never
+        65535, which read_depth also takes as none).
+
+    Raises:
+        ConfigError: when `units_per_metre` is not a positive finite number.
+    """
+    scale = positive_scale(units_per_metre)
+    units = np.rint(np.asarray(depth, dtype=np.float64) * scale)
+    # NaN compares False, so it falls outside `valid` with the rest.
+    valid = (units >= 1) & (units <= np.iinfo(np.uint16).max - 1)
+    return np.where(valid, units, 0).astype(np.uint16)
+
+
+def write_depth(
+    path: str | Path, depth: np.ndarray, units_per_metre: float = MILLIMETRES_PER_METRE
+) -> None:
+    """Write a depth map in metres as a 16-bit PNG (see encode_depth).
+
+    Raises:
+        DataError: naming the file when it cannot be written.
+    """
+    path = Path(path)
+    pixels = encode_depth(depth, units_per_metre)
+    try:
+        written = cv2.imwrite(str(path), pixels)
+    except cv2.error as error:  # e.g. an extension OpenCV cannot write 16 bits to
+        raise DataError(f"cannot write depth map: {path} ({error})") from error
+    if not written:
+        raise DataError(f"cannot write depth map: {path}")

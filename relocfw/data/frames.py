@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import DataError
 from relocfw.core.geometry import mean_quaternion
 from relocfw.core.imaging import read_rgb
@@ -19,11 +20,32 @@ from relocfw.data.on_error import OnError
 
 @dataclass(frozen=True)
 class Frame:
-    """One image of a dataset and where the camera was."""
+    """One image of a dataset, where the camera was, and what else the dataset knows of it.
 
-    name: str  # unique within the dataset, e.g. "seq-01/frame-000000"
+    Attributes:
+        name: unique within the dataset, e.g. "seq-01/frame-000000".
+        image_path: the colour image (any size, colour or grey, PNG or JPEG).
+        pose: camera-to-world, position in metres (model units for an unaligned
+            COLMAP model), unit quaternion w first.
+        camera: the pinhole intrinsics of the image at its full resolution (OpenCV's
+            convention, relocfw.core.camera), or None where the dataset gives none or
+            its camera has lens distortion (see relocfw.data.colmap_cameras.pinhole_of).
+        depth_path: a depth map of the frame, registered to the colour image: a
+            single-channel 16-bit PNG of z along the optical axis in
+            `depth_units_per_metre` units per metre, 0 = no reading; None where the
+            dataset has none. Read it with relocfw.data.depth.read_frame_depth.
+        depth_units_per_metre: the depth map's scale: 1000 (millimetres) for 7-Scenes
+            and the synthetic scene, 5000 for TUM RGB-D.
+    """
+
+    name: str
     image_path: Path
     pose: Pose
+    # Optional and last, so the three-argument Frame(name, path, pose) of every
+    # dataset without cameras (Cambridge, the plain folder, tests) stays valid.
+    camera: PinholeCamera | None = None
+    depth_path: Path | None = None
+    depth_units_per_metre: float = 1000.0
 
 
 def positions_of(frames: Sequence[Frame]) -> np.ndarray:

@@ -2,13 +2,19 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import DataError
+from relocfw.core.imaging import read_rgb
 from relocfw.data.text import data_lines, numbers
+
+# The file name 7-Scenes gives K; the other loaders read the same name and format.
+INTRINSICS_FILE = "camera-intrinsics.txt"
 
 
 def read_intrinsics_matrix(path: str | Path, width: int, height: int) -> PinholeCamera:
@@ -61,3 +67,59 @@ def read_intrinsics_matrix(path: str | Path, width: int, height: int) -> Pinhole
         if value <= 0:
             raise DataError(f"{source}: focal length {name} = {value:g}, expected > 0")
     return PinholeCamera(k[0, 0], k[1, 1], k[0, 2], k[1, 2], width, height)
+
+
+def image_size(images: Sequence[Path]) -> tuple[int, int]:
+    """(width, height) of the first of `images` that decodes.
+
+    One image is decoded, not all: a dataset's camera has one size. An image that does
+    not decode is passed over here (reading the images names it later, under the
+    dataset's on_error rule), so one bad frame does not stop a whole split.
+
+    Raises:
+        DataError: when none of `images` decodes (naming the first), or there are none.
+    """
+    for path in images:
+        try:
+            height, width = read_rgb(path).shape[:2]
+        except DataError:
+            continue
+        return width, height
+    raise DataError(
+        "no image decodes, so the size of the camera cannot be known"
+        + (f" (first: {images[0]})" if images else "")
+    )
+
+
+def read_camera_for_images(path: str | Path, images: Sequence[Path]) -> PinholeCamera:
+    """The camera of an intrinsics file (7-Scenes' format) for the images it belongs to.
+
+    The file holds K but no image size; the size is that of the first image that
+    decodes (one decode per call, not per frame). Taking 2 cx x 2 cy instead would be
+    one pixel off for a principal point at the exact centre, (W - 1) / 2.
+
+    Args:
+        path: the camera-intrinsics.txt.
+        images: the colour images the file describes, in dataset order.
+
+    Returns:
+        PinholeCamera of the file's K, width and height of the images.
+
+    Raises:
+        DataError: naming the file for a malformed matrix (read_intrinsics_matrix), or
+            naming an image when none of `images` decodes.
+    """
+    # The file is checked before any image is decoded, so a malformed file is named
+    # even when the images are unreadable too; the size is filled in afterwards.
+    unsized = read_intrinsics_matrix(path, 1, 1)
+    width, height = image_size(images)
+    return replace(unsized, width=width, height=height)
+
+
+def write_intrinsics_matrix(path: str | Path, camera: PinholeCamera) -> None:
+    """K of `camera` in 7-Scenes' format: three rows of three numbers, %.18e, spaces.
+
+    The size is not written (the format has none); %.18e reads back to the same floats.
+    """
+    rows = camera.matrix()
+    Path(path).write_text("".join(" ".join(f"{v:.18e}" for v in row) + "\n" for row in rows))

@@ -4,6 +4,11 @@ Real projective geometry, so that the image a pose produces is the one the camer
 would see: walls, floor, ceiling and a few boxes (furniture that gives parallax), each
 face with its own procedural texture so places are distinguishable, as in a real room.
 World frame: z up, metres. Camera frame: x right, y down, z forward (as 7-Scenes).
+
+The camera has 7-Scenes' field of view: focal length 585/640 of the image width on
+both axes, principal point at the image centre; `RoomRenderer.camera` gives its
+intrinsics and `RoomRenderer.depth` the z of every pixel's hit, so a depth map and
+the colour image describe the same rays.
 """
 
 from __future__ import annotations
@@ -13,7 +18,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from relocfw.core.camera import PinholeCamera
+
 TEXELS_PER_METRE = 48
+# The Kinect's horizontal field of view, as 7-Scenes' 585 px for 640 px images.
+FOCAL_PER_WIDTH = 585.0 / 640.0
 
 
 @dataclass(frozen=True)
@@ -79,6 +88,19 @@ class RoomRenderer:
                 for _side in range(2):
                     self.textures.append(make_texture(rng, extent[u_axis], extent[v_axis]))
 
+    @staticmethod
+    def camera(width: int, height: int) -> PinholeCamera:
+        """The intrinsics of a `width` x `height` image that `render` makes.
+
+        Pixel (i, j) is the ray through (j + 0.5 - W/2, i + 0.5 - H/2) / f in a frame
+        whose origin is the image's top-left corner, so in relocfw's convention
+        (coordinates from the top-left pixel's centre) the principal point is
+        ((W - 1) / 2, (H - 1) / 2). Supersampling does not change it: area-averaging
+        s x s blocks maps pixel edges onto pixel edges.
+        """
+        focal = FOCAL_PER_WIDTH * width
+        return PinholeCamera(focal, focal, width / 2 - 0.5, height / 2 - 0.5, width, height)
+
     def render(
         self, camera_to_world: np.ndarray, width: int, height: int, supersample: int = 2
     ) -> np.ndarray:
@@ -88,16 +110,53 @@ class RoomRenderer:
         the aliasing a point-sampled texture would otherwise show.
         """
         sw, sh = width * supersample, height * supersample
-        focal = 585.0 / 640.0 * sw  # the Kinect's field of view, as in 7-Scenes
-        u, v = np.meshgrid(np.arange(sw) + 0.5, np.arange(sh) + 0.5)
-        rays = np.stack([(u - sw / 2) / focal, (v - sh / 2) / focal, np.ones_like(u)], -1)
-        directions = rays.reshape(-1, 3) @ camera_to_world[:3, :3].T
-        origin = camera_to_world[:3, 3]
-        colour = self._trace(origin, directions)
+        origin, directions = self._rays(camera_to_world, sw, sh)
+        nearest, face = self._hit(origin, directions)
+        colour = self._colour(origin, directions, nearest, face)
         image = colour.reshape(sh, sw, 3)
         return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
 
-    def _trace(self, origin: np.ndarray, directions: np.ndarray) -> np.ndarray:
+    def depth(self, camera_to_world: np.ndarray, width: int, height: int) -> np.ndarray:
+        """The depth map of the image `render` makes from the same pose.
+
+        One ray through each pixel's centre, not supersampled: averaging the depths of
+        sub-pixels would invent surfaces between a box and the wall behind it.
+
+        Args:
+            camera_to_world: [4, 4] pose (camera x right, y down, z forward).
+            width, height: the image size in pixels.
+
+        Returns:
+            [height, width] float64 z of each pixel's hit in the camera frame, in
+            metres: the distance along the optical axis, not along the ray. Every ray
+            from inside the room hits a face, so every value is finite.
+        """
+        origin, directions = self._rays(camera_to_world, width, height)
+        nearest, _ = self._hit(origin, directions)
+        # The rays have z = 1 in the camera frame, so the ray parameter of a hit is
+        # its z: the point is origin + t * R @ ray, and R^T (point - origin) = t * ray.
+        return nearest.reshape(height, width)
+
+    @staticmethod
+    def _rays(
+        camera_to_world: np.ndarray, width: int, height: int
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The camera centre [3] and one world ray per pixel [H*W, 3], row-major.
+
+        Each ray is R @ (x / f, y / f, 1) for the pixel's centre (x, y) from the image
+        centre, so its camera-frame z is 1 (not unit length).
+        """
+        focal = FOCAL_PER_WIDTH * width
+        u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+        rays = np.stack([(u - width / 2) / focal, (v - height / 2) / focal, np.ones_like(u)], -1)
+        directions = rays.reshape(-1, 3) @ camera_to_world[:3, :3].T
+        return camera_to_world[:3, 3], directions
+
+    def _hit(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest hit of each ray: its parameter t [N] and face id [N].
+
+        Face ids: box index * 6 + axis * 2 + side, box 0 the room itself.
+        """
         n = len(directions)
         with np.errstate(divide="ignore", invalid="ignore"):
             inverse = 1.0 / directions
@@ -130,6 +189,13 @@ class RoomRenderer:
             nearest = np.where(hit, t_enter, nearest)
             side = directions[np.arange(n), enter_axis] < 0  # hit the upper face
             face = np.where(hit, index * 6 + enter_axis * 2 + side, face)
+        return nearest, face
+
+    def _colour(
+        self, origin: np.ndarray, directions: np.ndarray, nearest: np.ndarray, face: np.ndarray
+    ) -> np.ndarray:
+        """RGB uint8 [N, 3] of each ray's hit: the face's texture, lit and faded."""
+        n = len(directions)
         points = origin + directions * nearest[:, None]
         colour = np.zeros((n, 3), dtype=np.float32)
         for face_id in np.unique(face):

@@ -1,4 +1,14 @@
-"""Microsoft 7-Scenes layout: seq-XX/frame-NNNNNN.color.{png,jpg} + .pose.txt."""
+"""Microsoft 7-Scenes layout: seq-XX/frame-NNNNNN.color.{png,jpg} + .pose.txt.
+
+Each frame also gets its camera and, where the folder has it, its depth map:
+    camera      K of `camera-intrinsics.txt` in the scene folder, else in the dataset
+                root (the folder above it, where 7-Scenes' archives put it), sized like
+                the first image of the split; without either file, 7-Scenes' nominal
+                Kinect camera (585, 585, 320, 240 for 640 x 480), without reading an
+                image (so a copy scaled to another size needs its own file).
+    depth_path  `frame-NNNNNN.depth.png` beside the colour image when it exists (16-bit,
+                millimetres; copies without depth load as before, with None).
+"""
 
 from __future__ import annotations
 
@@ -8,9 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
+from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import pose_from_matrix
+from relocfw.core.values import Pose
+from relocfw.data.depth import depth_path_of
 from relocfw.data.frames import Frame
+from relocfw.data.intrinsics import INTRINSICS_FILE, read_camera_for_images
 from relocfw.data.on_error import OnError
 
 SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
@@ -65,6 +79,56 @@ def read_pose_file(path: Path) -> np.ndarray:
     return np.array(values).reshape(4, 4)
 
 
+def intrinsics_file(folder: Path) -> Path | None:
+    """The camera-intrinsics.txt of a scene folder: its own, else the dataset root's.
+
+    7-Scenes' archives keep one file for all scenes in the folder holding the scene
+    folders; a file in the scene folder itself is more specific, so it wins.
+    """
+    for candidate in (folder / INTRINSICS_FILE, folder.parent / INTRINSICS_FILE):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+def scene_camera(folder: Path, images: Sequence[Path]) -> PinholeCamera:
+    """The camera of a scene's images: its intrinsics file's, else 7-Scenes' default.
+
+    Args:
+        folder: the scene folder.
+        images: the colour images of the split, in order (the first that decodes
+            gives the size a file's matrix belongs to).
+
+    Raises:
+        DataError: naming the intrinsics file when it is malformed.
+    """
+    path = intrinsics_file(folder)
+    if path is None:
+        return SEVENSCENES_DEFAULT
+    return read_camera_for_images(path, images)
+
+
+def existing_depth(image: Path) -> Path | None:
+    """The depth map beside a colour image, or None when there is none."""
+    path = depth_path_of(image)
+    return path if path.is_file() else None
+
+
+def sequence_images(seq_dir: Path, source: str) -> list[Path]:
+    """The colour images of one sequence folder in frame order (PNG, else JPEG).
+
+    Args:
+        seq_dir: `seq-XX`.
+        source: what named the sequence (the split file or the option), for errors.
+    """
+    if not seq_dir.is_dir():
+        raise DataError(f"{source}: sequence folder not found: {seq_dir}")
+    images = sorted(seq_dir.glob("frame-*.color.png")) or sorted(seq_dir.glob("frame-*.color.jpg"))
+    if not images:
+        raise DataError(f"no frame-*.color.png or .jpg images in {seq_dir}")
+    return images
+
+
 def load_sevenscenes(
     root: str | Path,
     scene: str | None,
@@ -72,7 +136,7 @@ def load_sevenscenes(
     on_error: OnError | None = None,
     sequences: Sequence[int] | None = None,
 ) -> list[Frame]:
-    """Frames of one split, in sequence then frame order.
+    """Frames of one split, in sequence then frame order, with camera and depth path.
 
     Args:
         root: dataset folder (the one holding scene folders), or a scene folder.
@@ -81,6 +145,11 @@ def load_sevenscenes(
         on_error: what to do with a bad pose file (default: fail).
         sequences: sequence numbers to use instead of the split file's, e.g. to hold
             out a validation block of the training sequences.
+
+    Raises:
+        DataError: a missing split file, sequence folder or image set, a bad pose file
+            (under on_error=fail), or a malformed camera-intrinsics.txt (always: it
+            concerns every frame), each naming the file.
     """
     on_error = on_error or OnError()
     if split not in SPLIT_FILES:
@@ -90,17 +159,10 @@ def load_sevenscenes(
     if sequences is None:
         source = str(folder / SPLIT_FILES[split])
         sequences = read_split(folder / SPLIT_FILES[split])
-    frames = []
+    posed: list[tuple[str, Path, Pose]] = []
     for sequence in sequences:
         seq_dir = folder / f"seq-{sequence:02d}"
-        if not seq_dir.is_dir():
-            raise DataError(f"{source}: sequence folder not found: {seq_dir}")
-        images = sorted(seq_dir.glob("frame-*.color.png")) or sorted(
-            seq_dir.glob("frame-*.color.jpg")
-        )
-        if not images:
-            raise DataError(f"no frame-*.color.png or .jpg images in {seq_dir}")
-        for image in images:
+        for image in sequence_images(seq_dir, source):
             stem = image.name.split(".")[0]
             pose_path = seq_dir / f"{stem}.pose.txt"
             try:
@@ -108,8 +170,15 @@ def load_sevenscenes(
             except DataError as error:
                 on_error.handle(error)
                 continue
-            frames.append(Frame(f"{seq_dir.name}/{stem}", image, pose))
-    return frames
+            posed.append((f"{seq_dir.name}/{stem}", image, pose))
+    if not posed:  # every pose skipped: nothing to give a camera to
+        return []
+    # One camera for the scene: 7-Scenes' frames all come from one Kinect.
+    camera = scene_camera(folder, [image for _, image, _ in posed])
+    return [
+        Frame(name, image, pose, camera=camera, depth_path=existing_depth(image))
+        for name, image, pose in posed
+    ]
 
 
 class SevenScenes:

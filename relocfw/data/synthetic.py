@@ -3,6 +3,11 @@
 Training laps and the test lap follow the same loop but never coincide (different
 radius, height, phase and head wobble), like the paper's robot experiments: two or
 more laps to map, another lap to relocalize.
+
+Like a 7-Scenes scene, the folder holds beside each `frame-NNNNNN.color.png` its
+`.pose.txt` and `.depth.png` (uint16 millimetres of z along the optical axis, exact at
+each pixel's centre), and `camera-intrinsics.txt` (the renderer's K for the rendered
+size), so the frames come with their camera and depth (relocfw.data.sevenscenes).
 """
 
 from __future__ import annotations
@@ -20,11 +25,17 @@ import numpy as np
 
 from relocfw.core.errors import ConfigError
 from relocfw.core.progress import Progress
+from relocfw.data.depth import write_depth
 from relocfw.data.frames import Frame
+from relocfw.data.intrinsics import INTRINSICS_FILE, write_intrinsics_matrix
 from relocfw.data.room import Room, RoomRenderer
 from relocfw.data.sevenscenes import load_sevenscenes
 
 RENDERER_VERSION = 1  # bump when rendering changes, so cached scenes are not reused
+# Bump when a scene folder gains or changes files, so a cache without them is not
+# reused. 2: depth maps and camera-intrinsics.txt (layout 1, no version in the key,
+# had colour and poses only; its colour images and poses are the same as layout 2's).
+LAYOUT_VERSION = 2
 
 
 @dataclass(frozen=True)
@@ -56,7 +67,9 @@ class SyntheticSceneSpec:
             raise ConfigError("dataset.width and dataset.height must be at least 16 pixels")
 
     def key(self) -> str:
-        text = json.dumps({**asdict(self), "renderer": RENDERER_VERSION}, sort_keys=True)
+        """12 hex digits naming the cache folder: the spec, renderer and folder layout."""
+        versions = {"renderer": RENDERER_VERSION, "layout": LAYOUT_VERSION}
+        text = json.dumps({**asdict(self), **versions}, sort_keys=True)
         return hashlib.sha256(text.encode()).hexdigest()[:12]
 
 
@@ -115,7 +128,9 @@ def ensure_synthetic_scene(spec: SyntheticSceneSpec, cache_dir: Path, quiet: boo
     """Render the scene into the cache if it is not there yet; return its folder.
 
     Renders into a temporary folder and renames it into place, so an interrupted
-    render never leaves a half-written scene that a later run would trust.
+    render never leaves a half-written scene that a later run would trust. The depth
+    maps are cast after each colour image with rays of their own and no random
+    numbers, so the colour images and poses are those of a scene without depth.
     """
     spec.validate()
     folder = Path(cache_dir) / "scenes" / f"synthetic-{spec.key()}"
@@ -136,15 +151,18 @@ def ensure_synthetic_scene(spec: SyntheticSceneSpec, cache_dir: Path, quiet: boo
                 rgb = renderer.render(pose, spec.width, spec.height)
                 cv2.imwrite(str(sequence / f"frame-{i:06d}.color.png"), rgb[:, :, ::-1])
                 write_pose(sequence / f"frame-{i:06d}.pose.txt", pose)
+                depth = renderer.depth(pose, spec.width, spec.height)
+                write_depth(sequence / f"frame-{i:06d}.depth.png", depth)
                 progress.advance()
         progress.close()
         train_names = [f"sequence{i}" for i in range(1, len(train_laps) + 1)]
         (staging / "TrainSplit.txt").write_text("\n".join(train_names) + "\n")
         (staging / "TestSplit.txt").write_text(f"sequence{len(laps)}\n")
+        write_intrinsics_matrix(staging / INTRINSICS_FILE, renderer.camera(spec.width, spec.height))
+        # scene.json last: its presence marks a complete scene.
+        versions = {"renderer": RENDERER_VERSION, "layout": LAYOUT_VERSION}
         (staging / "scene.json").write_text(
-            json.dumps(
-                {**asdict(spec), "renderer": RENDERER_VERSION, "room": asdict(room)}, indent=2
-            )
+            json.dumps({**asdict(spec), **versions, "room": asdict(room)}, indent=2)
         )
         try:
             os.replace(staging, folder)
@@ -158,6 +176,9 @@ def ensure_synthetic_scene(spec: SyntheticSceneSpec, cache_dir: Path, quiet: boo
 
 class SyntheticScene:
     """The embedded dataset: rendered on first use, then read from the cache.
+
+    Its frames carry the renderer's camera (from the scene's camera-intrinsics.txt)
+    and their depth maps (millimetres), as a 7-Scenes scene with depth does.
 
     Args:
         cache_dir: where rendered scenes are kept.

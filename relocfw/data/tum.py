@@ -3,21 +3,50 @@
 Images come from `rgb.txt` (`timestamp filename`) and get the pose of the nearest
 trajectory timestamp within `max_time_difference` seconds; images with no pose that
 close are left out and counted (TUM records images at 30 Hz, poses at other rates).
+
+Each frame also gets a camera and, where the sequence has one, a depth map:
+    camera      `camera-intrinsics.txt` in the sequence folder (7-Scenes' format: K,
+                sized like the first image), else TUM's documented intrinsics of the
+                sensor the folder is named after (freiburg1, freiburg2, freiburg3),
+                else the ROS default (525, 525, 319.5, 239.5), all for 640 x 480.
+                freiburg1 and freiburg2 images also have lens distortion that these
+                pinhole values leave out, as TUM's own tools do.
+    depth_path  the `depth.txt` entry (`timestamp filename`) nearest the image's
+                timestamp within DEPTH_TIME_DIFFERENCE; TUM's depth PNGs are registered
+                to the colour camera and hold 5000 units per metre (not millimetres),
+                carried as `Frame.depth_units_per_metre`.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
+from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import checked_quaternion
 from relocfw.core.values import Pose
+from relocfw.data.depth import TUM_UNITS_PER_METRE
 from relocfw.data.frames import Frame
+from relocfw.data.intrinsics import INTRINSICS_FILE, read_camera_for_images
 from relocfw.data.on_error import OnError
 from relocfw.data.text import data_lines, numbers
+
+# TUM RGB-D's documented colour-camera intrinsics by sensor (the "file formats" page
+# of the dataset), all for 640 x 480 images.
+TUM_CAMERAS = {
+    "freiburg1": PinholeCamera(517.3, 516.5, 318.6, 255.3, 640, 480),
+    "freiburg2": PinholeCamera(520.9, 521.0, 325.1, 249.7, 640, 480),
+    "freiburg3": PinholeCamera(535.4, 539.2, 320.1, 247.6, 640, 480),
+}
+# The Kinect's ROS default, which TUM recommends when the sensor is unknown.
+ROS_DEFAULT_CAMERA = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
+SENSOR_NAME = re.compile(r"freiburg[123]", re.IGNORECASE)
+# As TUM's associate.py: colour and depth are taken 1/30 s apart at most.
+DEPTH_TIME_DIFFERENCE = 0.02
 
 
 def tum_quaternion_to_relocfw(qx: float, qy: float, qz: float, qw: float) -> list[float]:
@@ -78,13 +107,59 @@ def associate(
     return np.where(close, pick, -1)
 
 
+def sequence_camera(folder: Path, images: Sequence[Path]) -> PinholeCamera:
+    """The camera of a sequence: its intrinsics file, else its sensor's, else ROS's.
+
+    Args:
+        folder: the sequence folder; its name (e.g. rgbd_dataset_freiburg1_xyz) names
+            the sensor.
+        images: the colour images, in order (the first that decodes sizes a file's K).
+
+    Raises:
+        DataError: naming the intrinsics file when it is malformed.
+    """
+    path = folder / INTRINSICS_FILE
+    if path.is_file():
+        return read_camera_for_images(path, images)
+    sensor = SENSOR_NAME.search(folder.name)
+    return TUM_CAMERAS[sensor.group().lower()] if sensor else ROS_DEFAULT_CAMERA
+
+
+def depth_paths(
+    folder: Path, image_stamps: np.ndarray, on_error: OnError | None = None
+) -> list[Path | None]:
+    """For each image timestamp, the depth map of `depth.txt` nearest it, or None.
+
+    Args:
+        folder: the sequence folder.
+        image_stamps: [N] the colour images' timestamps in seconds.
+        on_error: what to do with a bad depth.txt line (default: fail).
+
+    Returns:
+        N paths (as listed, not checked to exist: read_depth names a missing one), None
+        where no depth map is within DEPTH_TIME_DIFFERENCE or there is no depth.txt.
+    """
+    path = folder / "depth.txt"
+    entries = read_image_list(path, on_error) if path.is_file() else []
+    if not entries:
+        return [None] * len(image_stamps)
+    order = np.argsort([t for t, _ in entries], kind="stable")
+    stamps = np.array([entries[i][0] for i in order])
+    matches = associate(np.asarray(image_stamps, dtype=np.float64), stamps, DEPTH_TIME_DIFFERENCE)
+    return [folder / entries[order[m]][1] if m >= 0 else None for m in matches]
+
+
 def load_tum_sequence(
     folder: Path,
     trajectory: str,
     max_time_difference: float,
     on_error: OnError | None = None,
 ) -> tuple[list[Frame], int]:
-    """Frames of one recording, and how many images had no pose close enough."""
+    """Frames of one recording, and how many images had no pose close enough.
+
+    Each frame carries the sequence's camera and its depth map where depth.txt has
+    one close in time (see the module's docstring).
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise DataError(f"sequence folder not found: {folder}")
@@ -92,11 +167,23 @@ def load_tum_sequence(
     images = read_image_list(folder / "rgb.txt", on_error)
     if not images:
         raise DataError(f"{folder / 'rgb.txt'}: lists no images")
-    matches = associate(np.array([t for t, _ in images]), stamps, max_time_difference)
+    image_stamps = np.array([t for t, _ in images])
+    matches = associate(image_stamps, stamps, max_time_difference)
+    posed = [(name, m) for (_, name), m in zip(images, matches, strict=True) if m >= 0]
+    if not posed:
+        return [], int(np.sum(matches < 0))
+    camera = sequence_camera(folder, [folder / name for name, _ in posed])
+    depths = depth_paths(folder, image_stamps[matches >= 0], on_error)
     frames = [
-        Frame(f"{folder.name}/{Path(name).stem}", folder / name, poses[m])
-        for (_, name), m in zip(images, matches, strict=True)
-        if m >= 0
+        Frame(
+            f"{folder.name}/{Path(name).stem}",
+            folder / name,
+            poses[m],
+            camera=camera,
+            depth_path=depth,
+            depth_units_per_metre=TUM_UNITS_PER_METRE,
+        )
+        for (name, m), depth in zip(posed, depths, strict=True)
     ]
     return frames, int(np.sum(matches < 0))
 

@@ -201,7 +201,7 @@ def test_localize_matches_the_evaluation_run(trained_run, tiny_scene):
         [
             "task=localize",
             f"localize.model={run_dir / 'model.relocfw'}",
-            f"localize.images={scene / 'seq-03'}/*.png",
+            f"localize.images={scene / 'seq-03'}/*.color.png",
             "query.queries_at_once=3",  # over the model file's 1: the same answers
             f"hydra.run.dir={out}",
             "quiet=true",
@@ -271,6 +271,25 @@ def test_localize_without_images(trained_run, tmp_path):
         tmp_path,
     )
     assert result.returncode == 2 and "no image files found" in result.stderr
+
+
+def test_localize_refuses_depth_maps_as_images(trained_run, tmp_path):
+    home, run_dir = trained_run
+    sequence = next((home / "cache" / "scenes").iterdir()) / "seq-03"
+    result = relocfw_here(
+        [
+            "task=localize",
+            f"localize.model={run_dir / 'model.relocfw'}",
+            f"localize.images={sequence}",
+        ],
+        tmp_path,
+    )
+    assert result.returncode == 2
+    assert result.stderr == (
+        f"error: localize.images={sequence}: 4 of the 8 files are depth maps "
+        f"(frame-000000.depth.png, ...); name the colour images, e.g. "
+        f"localize.images='{sequence}/*.color.png'\n"
+    )
 
 
 def test_killed_training_resumes(tmp_path):

@@ -9,6 +9,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from relocfw.core.geometry import matrix_to_quaternion, quaternion_to_matrix
@@ -19,8 +20,16 @@ def scene_frames(scene: Path, split: str):
     return load_sevenscenes(scene, None, split)
 
 
-def write_tum(scene: Path, root: Path) -> dict[str, list]:
-    """One TUM folder per lap: rgb.txt (30 Hz stamps) and groundtruth.txt (w last)."""
+TUM_DEPTH_PER_MILLIMETRE = 5  # TUM's depth PNGs: 5000 per metre
+
+
+def write_tum(scene: Path, root: Path, depth: bool = False) -> dict[str, list]:
+    """One TUM folder per lap: rgb.txt (30 Hz stamps) and groundtruth.txt (w last).
+
+    With `depth`, also depth.txt and depth/STAMP.png as the Kinect recorder writes
+    them: stamps 4 ms after the colour image's, 16-bit values of 5000 per metre (the
+    scene's millimetres times 5).
+    """
     laps = {
         "lap1": scene_frames(scene, "train")[:8],
         "lap2": scene_frames(scene, "train")[8:],
@@ -29,11 +38,20 @@ def write_tum(scene: Path, root: Path) -> dict[str, list]:
     for name, frames in laps.items():
         folder = root / name
         (folder / "rgb").mkdir(parents=True)
+        if depth:
+            (folder / "depth").mkdir()
         rgb, truth = ["# timestamp filename"], ["# timestamp tx ty tz qx qy qz qw"]
+        depth_lines = ["# timestamp filename"]
         for i, frame in enumerate(frames):
             stamp = 1000.0 + i / 30.0
             shutil.copy(frame.image_path, folder / "rgb" / f"{stamp:.6f}.png")
             rgb.append(f"{stamp:.6f} rgb/{stamp:.6f}.png")
+            if depth:
+                millimetres = cv2.imread(str(frame.depth_path), cv2.IMREAD_UNCHANGED)
+                depth_name = f"depth/{stamp + 0.004:.6f}.png"
+                units = millimetres * np.uint16(TUM_DEPTH_PER_MILLIMETRE)
+                assert cv2.imwrite(str(folder / depth_name), units)
+                depth_lines.append(f"{stamp + 0.004:.6f} {depth_name}")
             w, x, y, z = frame.pose.quaternion
             # Pose stamps 5 ms off the image's, as a mocap clock would be.
             truth.append(
@@ -41,6 +59,8 @@ def write_tum(scene: Path, root: Path) -> dict[str, list]:
             )
         (folder / "rgb.txt").write_text("\n".join(rgb) + "\n")
         (folder / "groundtruth.txt").write_text("\n".join(truth) + "\n")
+        if depth:
+            (folder / "depth.txt").write_text("\n".join(depth_lines) + "\n")
     return laps
 
 

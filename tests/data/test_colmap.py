@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
+from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import quaternion_to_matrix
 from relocfw.core.values import Pose
@@ -22,6 +23,7 @@ from relocfw.data.colmap import (
     colmap_to_pose,
     pose_to_colmap,
 )
+from relocfw.data.colmap_cameras import pinhole_of, why_not_pinhole
 from relocfw.data.colmap_format import (
     CAMERA_MODELS,
     ColmapCamera,
@@ -664,3 +666,75 @@ def test_cli_relocalizes_a_colmap_project(tmp_path):
     )
     assert broken.returncode == 2
     assert "image 'seq1/03.png' not found" in broken.stderr and "images.bin: image" in broken.stderr
+
+
+# ------------------------------------------------------- cameras as pinholes
+
+
+@pytest.mark.parametrize(
+    ("model", "params", "expected"),
+    [
+        # COLMAP's principal point is from the image corner; relocfw's from the
+        # top-left pixel's centre, half a pixel in.
+        ("PINHOLE", (40.5, 41.25, 24.0, 18.0), (40.5, 41.25, 23.5, 17.5)),
+        ("SIMPLE_PINHOLE", (40.0, 24.5, 18.0), (40.0, 40.0, 24.0, 17.5)),
+        ("SIMPLE_RADIAL", (40.0, 24.0, 18.0, 0.0), (40.0, 40.0, 23.5, 17.5)),
+        ("OPENCV", (40.0, 41.0, 24.0, 18.0, 0, 0, 0, 0), (40.0, 41.0, 23.5, 17.5)),
+    ],
+)
+def test_a_camera_without_distortion_is_a_pinhole(model, params, expected):
+    camera = pinhole_of(ColmapCamera(3, model, 48, 36, params))
+    assert camera == PinholeCamera(*expected, 48, 36)
+    assert why_not_pinhole(ColmapCamera(3, model, 48, 36, params)) == ""
+
+
+@pytest.mark.parametrize(
+    ("model", "params", "reason"),
+    [
+        (
+            "SIMPLE_RADIAL",
+            (40.0, 24.0, 18.0, -0.1),
+            "camera 3 is SIMPLE_RADIAL with lens distortion (-0.1)",
+        ),
+        (
+            "RADIAL",
+            (40.0, 24.0, 18.0, 0.0, 0.02),
+            "camera 3 is RADIAL with lens distortion (0 0.02)",
+        ),
+        (
+            "OPENCV",
+            (500, 501, 320, 240, -0.1, 0.01, 0.001, -0.002),
+            "camera 3 is OPENCV with lens distortion (-0.1 0.01 0.001 -0.002)",
+        ),
+        # A fisheye projection is not x / z even with zero coefficients.
+        (
+            "OPENCV_FISHEYE",
+            (40, 41, 24, 18, 0, 0, 0, 0),
+            "camera 3 is OPENCV_FISHEYE, not a pinhole",
+        ),
+    ],
+)
+def test_a_camera_with_distortion_has_none_and_says_why(model, params, reason):
+    camera = ColmapCamera(3, model, 48, 36, params)
+    assert pinhole_of(camera) is None
+    assert why_not_pinhole(camera).startswith(reason) and "\n" not in why_not_pinhole(camera)
+
+
+def test_frames_carry_their_pinhole_camera_and_no_depth(text_project):
+    root, _ = text_project
+    write_cameras_txt(root, "1 SIMPLE_PINHOLE 48 36 40 24 18")
+    dataset = ColmapDataset(str(root), test=["c.png"])
+    frames = dataset.frames("train") + dataset.frames("test")
+    assert {f.camera for f in frames} == {PinholeCamera(40, 40, 23.5, 17.5, 48, 36)}
+    assert all(f.depth_path is None for f in frames)
+    assert dataset.why_no_camera("a.png") == ""
+
+
+def test_frames_of_a_distorted_camera_have_none_and_the_reason(text_project):
+    root, _ = text_project
+    write_cameras_txt(root, "1 OPENCV 48 36 40 41 24 18 -0.1 0.01 0 0")
+    dataset = ColmapDataset(str(root), test=["c.png"])
+    (frame,) = dataset.frames("test")
+    assert frame.camera is None
+    reason = dataset.why_no_camera(frame.name)
+    assert reason == "camera 1 is OPENCV with lens distortion (-0.1 0.01 0 0)"

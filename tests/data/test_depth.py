@@ -8,8 +8,18 @@ import cv2
 import numpy as np
 import pytest
 
+from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
-from relocfw.data.depth import depth_path_of, read_depth
+from relocfw.core.values import Pose
+from relocfw.data.depth import (
+    TUM_UNITS_PER_METRE,
+    depth_path_of,
+    encode_depth,
+    read_depth,
+    read_frame_depth,
+    write_depth,
+)
+from relocfw.data.frames import Frame
 
 REDKITCHEN = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes-redkitchen"
 
@@ -88,3 +98,39 @@ def test_the_depth_map_beside_a_colour_image(image, depth):
 def test_a_name_that_is_not_7scenes_is_one_data_error():
     with pytest.raises(DataError, match="image.jpg: not a 7-Scenes colour image name"):
         depth_path_of("seq-01/image.jpg")
+
+
+def test_tum_depth_is_read_at_5000_per_metre(tmp_path):
+    raw = np.array([[0, 5000, 12500]], dtype=np.uint16)
+    depth = read_depth(write_png(tmp_path, raw), units_per_metre=TUM_UNITS_PER_METRE)
+    assert np.isnan(depth[0, 0]) and np.allclose(depth[0, 1:], [1.0, 2.5])
+
+
+@pytest.mark.parametrize("scale", [0, -1000, float("nan"), float("inf"), "1000", True])
+def test_an_impossible_scale_is_a_config_error(tmp_path, scale):
+    path = write_png(tmp_path, np.zeros((4, 6), dtype=np.uint16))
+    with pytest.raises(ConfigError, match="units_per_metre must be a positive number"):
+        read_depth(path, units_per_metre=scale)
+
+
+def test_written_depth_reads_back_to_the_nearest_unit(tmp_path):
+    metres = np.array([[1.2344, 0.0, np.nan], [np.inf, 65.6, 2.0]])
+    assert np.array_equal(encode_depth(metres), [[1234, 0, 0], [0, 0, 2000]])
+    path = tmp_path / "frame-000000.depth.png"
+    write_depth(path, metres, units_per_metre=5000.0)
+    read_back = read_depth(path, (3, 2), units_per_metre=5000.0)
+    assert read_back[0, 0] == pytest.approx(1.2344) and read_back[1, 2] == pytest.approx(2.0)
+    # No reading, zero, beyond 16 bits (65.6 m x 5000): all NaN when read back.
+    assert np.isnan(read_back[[0, 0, 1, 1], [1, 2, 0, 1]]).all()
+
+
+def test_a_frame_without_depth_gives_none_and_one_with_the_wrong_size_names_it(tmp_path):
+    pose = Pose([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0])
+    camera = PinholeCamera(5.0, 5.0, 2.5, 1.5, 6, 4)
+    assert read_frame_depth(Frame("a", tmp_path / "a.png", pose, camera)) is None
+    path = write_png(tmp_path, np.full((5, 6), 1000, dtype=np.uint16))
+    with pytest.raises(DataError, match="depth map is 6x5, expected 6x4") as error:
+        read_frame_depth(Frame("a", tmp_path / "a.png", pose, camera, path))
+    assert str(path) in str(error.value)
+    # Without a camera there is no size to hold it to.
+    assert read_frame_depth(Frame("a", tmp_path / "a.png", pose, None, path)).shape == (5, 6)

@@ -4,11 +4,17 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
+import numpy as np
 import pytest
 
-from relocfw.core.camera import SEVENSCENES_DEFAULT
+from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
-from relocfw.data.intrinsics import read_intrinsics_matrix
+from relocfw.data.intrinsics import (
+    read_camera_for_images,
+    read_intrinsics_matrix,
+    write_intrinsics_matrix,
+)
 
 REDKITCHEN = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes-redkitchen"
 # 7-Scenes' own layout: 18-digit mantissas, exponents, a newline after each row.
@@ -82,3 +88,41 @@ def test_a_missing_or_binary_file_is_one_data_error_naming_it(tmp_path):
 def test_an_impossible_image_size_is_a_config_error(tmp_path):
     with pytest.raises(ConfigError, match="camera width"):
         read_intrinsics_matrix(write(tmp_path, SEVENSCENES_TEXT), 0, 480)
+
+
+def write_image(path: Path, width: int, height: int) -> Path:
+    assert cv2.imwrite(str(path), np.zeros((height, width, 3), dtype=np.uint8))
+    return path
+
+
+def test_the_size_comes_from_the_first_image_that_decodes(tmp_path):
+    corrupt = tmp_path / "a.png"
+    corrupt.write_bytes(b"not a png")
+    images = [
+        corrupt,
+        write_image(tmp_path / "b.png", 64, 40),
+        write_image(tmp_path / "c.png", 8, 8),
+    ]
+    camera = read_camera_for_images(write(tmp_path, SEVENSCENES_TEXT), images)
+    assert camera == PinholeCamera(585, 585, 320, 240, 64, 40)
+
+
+def test_a_malformed_file_is_named_before_any_image_is_read(tmp_path):
+    path = write(tmp_path, "585 0 320\n0 585 240\n")
+    with pytest.raises(DataError, match="found 2") as error:
+        read_camera_for_images(path, [tmp_path / "missing.png"])
+    assert str(path) in str(error.value)
+
+
+def test_no_image_that_decodes_is_one_data_error(tmp_path):
+    missing = tmp_path / "missing.png"
+    with pytest.raises(DataError, match=f"no image decodes.*first: {missing}"):
+        read_camera_for_images(write(tmp_path, SEVENSCENES_TEXT), [missing])
+
+
+def test_a_written_matrix_reads_back_exactly(tmp_path):
+    camera = PinholeCamera(43.875, 44.1, 23.5, 17.5, 48, 36)
+    path = tmp_path / "camera-intrinsics.txt"
+    write_intrinsics_matrix(path, camera)
+    assert read_intrinsics_matrix(path, 48, 36) == camera
+    assert path.read_text().splitlines()[2] == SEVENSCENES_TEXT.splitlines()[2]

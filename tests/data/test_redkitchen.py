@@ -5,6 +5,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from relocfw.core.camera import PinholeCamera
+from relocfw.data.depth import read_frame_depth
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import SevenScenes
 
@@ -45,3 +47,13 @@ def test_near_and_far_splits_are_one_option_each(
     assert 1.0 < np.ptp(positions, axis=0).max() < 4.0
     image = read_images(test_frames[:1], quiet=True)[0]
     assert image.shape == (480, 640, 3) and image.dtype == np.uint8
+
+
+def test_frames_carry_the_kinect_camera_and_their_depth_maps(redkitchen):
+    # camera-intrinsics.txt is at the dataset root, beside the scene folder.
+    frames = SevenScenes(root=str(redkitchen), scene="redkitchen").frames("test")
+    assert {f.camera for f in frames} == {PinholeCamera(585.0, 585.0, 320.0, 240.0, 640, 480)}
+    assert all(f.depth_path is not None and f.depth_path.is_file() for f in frames)
+    assert frames[0].depth_path == frames[0].image_path.with_name("frame-000000.depth.png")
+    depth = read_frame_depth(frames[0])
+    assert depth.shape == (480, 640) and 0.5 < np.nanmedian(depth) < 4.0  # metres

@@ -1,12 +1,16 @@
 import re
 import shutil
 
+import cv2
 import numpy as np
 import pytest
 
+from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import pose_to_matrix
 from relocfw.core.imaging import read_rgb
+from relocfw.data.depth import read_frame_depth
+from relocfw.data.intrinsics import read_intrinsics_matrix
 from relocfw.data.sevenscenes import SevenScenes, load_sevenscenes, read_pose_file, read_split
 
 
@@ -120,3 +124,73 @@ def test_bad_sequence_lists_name_the_key(stairs_sample, options, message):
 def test_a_listed_sequence_that_is_missing_names_the_key(stairs_sample):
     with pytest.raises(DataError, match=r"dataset.train_sequences: sequence folder not found"):
         SevenScenes(stairs_sample, "stairs", train_sequences=[9]).frames("train")
+
+
+# ------------------------------------------------------------ camera and depth
+
+
+def write_intrinsics(path, fx, fy, cx, cy):
+    path.write_text(f"{fx} 0 {cx}\n0 {fy} {cy}\n0 0 1\n")
+    return path
+
+
+def test_the_scene_folders_intrinsics_win_over_the_roots(scene_copy):
+    # scene_copy is tmp_path/room: tmp_path plays the dataset root.
+    write_intrinsics(scene_copy.parent / "camera-intrinsics.txt", 500, 501, 20, 15)
+    frames = SevenScenes(scene_copy.parent, "room").frames("train")
+    own = read_intrinsics_matrix(scene_copy / "camera-intrinsics.txt", 48, 36)
+    assert own.fx == pytest.approx(43.875) and all(f.camera == own for f in frames)
+
+
+def test_the_roots_intrinsics_sized_like_the_images(scene_copy):
+    (scene_copy / "camera-intrinsics.txt").unlink()
+    write_intrinsics(scene_copy.parent / "camera-intrinsics.txt", 500, 501, 20.5, 15)
+    for frames in (
+        SevenScenes(scene_copy.parent, "room").frames("test"),
+        load_sevenscenes(scene_copy, None, "test"),  # the scene folder as root
+    ):
+        assert {f.camera for f in frames} == {PinholeCamera(500, 501, 20.5, 15, 48, 36)}
+
+
+def test_without_an_intrinsics_file_the_7scenes_default(scene_copy):
+    (scene_copy / "camera-intrinsics.txt").unlink()
+    frames = load_sevenscenes(scene_copy, None, "train")
+    assert {f.camera for f in frames} == {SEVENSCENES_DEFAULT}
+
+
+def test_real_stairs_frames_have_the_default_camera_and_no_depth(stairs_sample):
+    frames = SevenScenes(stairs_sample, "stairs").frames("test")
+    assert all(f.camera == SEVENSCENES_DEFAULT and f.depth_path is None for f in frames)
+
+
+def test_depth_paths_where_the_depth_maps_are(scene_copy):
+    missing = scene_copy / "seq-01" / "frame-000002.depth.png"
+    missing.unlink()
+    frames = load_sevenscenes(scene_copy, None, "train")
+    without = [f.name for f in frames if f.depth_path is None]
+    assert without == ["seq-01/frame-000002"]
+    for frame in frames:
+        if frame.depth_path is not None:
+            assert frame.depth_path.is_file() and frame.depth_path.parent == frame.image_path.parent
+            assert frame.depth_path.name == frame.name.split("/")[1] + ".depth.png"
+            assert frame.depth_units_per_metre == 1000
+
+
+@pytest.mark.parametrize("where", ["scene", "root"])
+def test_a_malformed_intrinsics_file_is_one_data_error_naming_it(scene_copy, where):
+    (scene_copy / "camera-intrinsics.txt").unlink()
+    folder = scene_copy if where == "scene" else scene_copy.parent
+    path = folder / "camera-intrinsics.txt"
+    path.write_text("585 0 320\n0 585 240\n")
+    with pytest.raises(DataError, match="expected a 3x3 matrix") as error:
+        SevenScenes(scene_copy.parent, "room").frames("train")
+    assert str(path) in str(error.value) and "\n" not in str(error.value)
+
+
+def test_a_depth_map_of_another_size_is_one_data_error_naming_it(scene_copy):
+    path = scene_copy / "seq-02" / "frame-000001.depth.png"
+    assert cv2.imwrite(str(path), np.full((18, 24), 1500, dtype=np.uint16))
+    frame = next(f for f in load_sevenscenes(scene_copy, None, "train") if f.depth_path == path)
+    with pytest.raises(DataError, match="depth map is 24x18, expected 48x36") as error:
+        read_frame_depth(frame)
+    assert str(path) in str(error.value)

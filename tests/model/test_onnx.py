@@ -280,7 +280,7 @@ def test_cli_export_then_localize_with_onnxruntime(trained_model):
             [
                 "task=localize",
                 f"localize.model={model}",
-                f"localize.images={images}/*.png",
+                f"localize.images={images}/*.color.png",
                 f"localize.backend={backend}",
                 f"hydra.run.dir={runs[backend]}",
                 "quiet=true",
@@ -320,7 +320,7 @@ def test_cli_bad_backend_inputs(trained_model, tmp_path, args, message):
     lone = tmp_path / "model.relocfw"  # a model file with no export beside it
     lone.write_bytes(model.read_bytes())
     result = relocfw_here(
-        ["task=localize", f"localize.model={lone}", f"localize.images={images}/*.png", *args],
+        ["task=localize", f"localize.model={lone}", f"localize.images={images}/*.color.png", *args],
         tmp_path,
         home,
     )

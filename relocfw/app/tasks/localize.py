@@ -59,6 +59,15 @@ def find_images(pattern: str) -> list[Path]:
         found = sorted(Path(p) for p in glob.glob(str(path)))
     if not found:
         raise DataError(f"localize.images={pattern}: no image files found")
+    # A 7-Scenes or synthetic sequence keeps 16-bit depth maps beside its colour
+    # images; read as colour they would be localized as nonsense, not refused.
+    depth = [p for p in found if p.name.lower().endswith(".depth.png")]
+    if depth:
+        raise DataError(
+            f"localize.images={pattern}: {len(depth)} of the {len(found)} files are depth "
+            f"maps ({depth[0].name}, ...); name the colour images, e.g. "
+            f"localize.images='{depth[0].parent}/*.color.png'"
+        )
     return found
 
 
