@@ -1,13 +1,16 @@
 """relocfw: plugin-based visual relocalization (6-DoF pose from one RGB image).
 
-The package is five parts, imports running one way (app -> report -> model, data ->
-core), checked by tests/core/test_layout.py:
+The package is six parts, imports running one way (app -> report -> model, data ->
+core; structure -> data -> core), checked by tests/core/test_layout.py:
 
 - `relocfw.core`: the plugin interfaces, values, the `Relocalizer` pipeline and its
-  stages (scorer, search loop, sampling, retrieval), `QueryOptions`, geometry, imaging,
-  descriptor standardisation. Plain Python + torch.
+  stages (scorer, search loop, sampling, retrieval, the `PoseRefiner` interface),
+  `QueryOptions`, geometry, cameras, imaging, descriptor standardisation. Plain
+  Python + torch.
 - `relocfw.model`: the pose head, loss, training, checkpoints, model files, ONNX.
 - `relocfw.data`: dataset loaders and the synthetic scene.
+- `relocfw.structure`: local features, matching, 3-D map points (depth, triangulation)
+  and absolute pose solving, for structure-based refinement (`refine=features`).
 - `relocfw.report`: evaluation, metrics, statistics over seeds, comparisons, figures,
   the crop-premise diagnosis.
 - `relocfw.app`: the Hydra CLI, its tasks, plugin discovery, the torchrun entry.
@@ -27,6 +30,7 @@ from relocfw.core.interfaces import (
 )
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.query_options import QueryOptions
+from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
 from relocfw.core.values import Crop, Localization, Pose, PoseOutput
 from relocfw.core.version import VERSION
 from relocfw.model.model_file import load_model, save_model
@@ -40,9 +44,13 @@ __all__ = [
     "CropSearch",
     "DataError",
     "Localization",
+    "MapImage",
     "Pose",
     "PoseOutput",
+    "PoseRefiner",
     "QueryOptions",
+    "RefineQuery",
+    "Refined",
     "Relocalizer",
     "RelocfwError",
     "SearchQuery",

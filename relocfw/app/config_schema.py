@@ -4,7 +4,7 @@ conf/config.yaml holds the values and their comments; the dataclasses here hold 
 what each value may be (MISSING: the YAML sets it). Composing checks every override
 and YAML value against them: `query.batch_size=abc` or `query.scoring=fancy` ends
 the command before a scene is rendered or a model built. The plugin groups
-(backbone, index, crop, dataset) stay open mappings: their options are the plugins';
+(backbone, index, crop, refine, dataset) stay open mappings: their options are the plugins';
 so does compare (see RelocfwConfig.compare).
 
 Choices are Enums; `name_of` gives back the plain string the rest of relocfw uses.
@@ -150,6 +150,7 @@ class RelocfwConfig:
     backbone: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006
     index: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006
     crop: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006
+    refine: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006
     dataset: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006
     query: QueryConfig = field(default_factory=QueryConfig)
     localize: LocalizeConfig = field(default_factory=LocalizeConfig)

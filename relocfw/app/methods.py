@@ -18,9 +18,15 @@ from relocfw.core.errors import ConfigError, RelocfwError
 from relocfw.core.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.core.pipeline import Relocalizer, check_options
 from relocfw.core.query_options import QueryOptions
+from relocfw.core.refinement import PoseRefiner
 from relocfw.model.training import TrainSettings
 
-INTERFACES = {"backbone": Backbone, "index": SimilarityIndex, "crop": CropSearch}
+INTERFACES = {
+    "backbone": Backbone,
+    "index": SimilarityIndex,
+    "crop": CropSearch,
+    "refine": PoseRefiner,
+}
 # Methods of which an interface needs one, not all (not abstract, so not listed by
 # __abstractmethods__): a CropSearch defines propose or the older search.
 ONE_OF = {CropSearch: ("propose", "search")}
@@ -118,9 +124,10 @@ class Method:
     settings: TrainSettings
     identity: dict[str, Any]
     part_options: dict[str, dict[str, Any]]  # what the parts were built with
+    refiner: PoseRefiner | None = None  # refine=none: the network's (or retrieval's) pose
 
     def relocalizer(self, device: torch.device) -> Relocalizer:
-        return Relocalizer(self.backbone, self.index, self.search, self.query, device)
+        return Relocalizer(self.backbone, self.index, self.search, self.query, device, self.refiner)
 
 
 def method_label(cfg: DictConfig, choices: Mapping[str, str], query: QueryOptions) -> str:
@@ -143,6 +150,9 @@ def method_label(cfg: DictConfig, choices: Mapping[str, str], query: QueryOption
         # With random crops, dropout draws one mask per crop: the count is the crops'.
         sampled = (f" MC dropout{where}" if crops else f" x{samples} MC{where}") if samples else ""
         label = f"{choices['backbone']}{sampled}: {label}"
+    refine = choices.get("refine", "none")
+    if refine != "none":
+        label += f" + {refine}"
     return label
 
 
@@ -168,6 +178,8 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     backbone = build(cfg, "backbone", choices["backbone"])
     index = build(cfg, "index", choices["index"])
     search = build(cfg, "crop", choices["crop"])
+    refine = choices.get("refine", "none")
+    refiner = None if refine == "none" else build(cfg, "refine", refine)
     # Before training: the trained model will have train.crop_scale.
     try:
         check_options(query, backbone, index, settings.crop_scale)
@@ -200,6 +212,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
         settings,
         identity,
         parts,
+        refiner,
     )
 
 

@@ -43,6 +43,7 @@ GROUPS = {
     "backbone": "Backbone",
     "index": "SimilarityIndex",
     "crop": "CropSearch",
+    "refine": "PoseRefiner",
     "dataset": "dataset",
     "preset": "settings preset",
 }

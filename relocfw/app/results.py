@@ -34,7 +34,13 @@ def run_method(
     Returns:
         The method's answers and the map's [N, D] training descriptors.
     """
-    features = relocalizer.fit(train[1], [f.pose for f in train[0]], quiet=quiet)
+    frames = train[0]
+    features = relocalizer.fit(
+        train[1],
+        [f.pose for f in frames],
+        quiet=quiet,
+        frames=frames,
+    )
     return evaluate(method, relocalizer, *test, quiet=quiet), features
 
 

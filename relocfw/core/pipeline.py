@@ -7,6 +7,7 @@ A query goes through five stages, each in a module of its own:
     rerank    shared-scoring candidates re-scored       QueryWindows.rerank
     sample    the chosen crop's test-time samples       relocfw.core.sampled_answer
     pose      the network's pose, or retrieval's        relocfw.core.retrieval
+    refine    the final pose (e.g. features + PnP)      PoseRefiner (relocfw.core.refinement)
 
 Every network pass and map lookup goes through one Scorer (relocfw.core.scorer); the
 options are one QueryOptions value (relocfw.core.query_options).
@@ -21,12 +22,14 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import check_rgb_image, check_rgb_images
 from relocfw.core.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.core.network_answers import NetworkAnswers
 from relocfw.core.query_options import QueryOptions
 from relocfw.core.query_windows import QueryWindows
+from relocfw.core.refinement import MapImage, PoseRefiner, RefineQuery
 from relocfw.core.retrieval import check_retrieval, retrieved_pose
 from relocfw.core.sampled_answer import sampled_answer, samples_answer
 from relocfw.core.sampling import configured_samples
@@ -82,6 +85,8 @@ class Relocalizer:
         search: the crop search strategy.
         options: how a query is localized (relocfw.core.query_options.QueryOptions).
         device: where the network runs.
+        refiner: the last stage (relocfw.core.refinement.PoseRefiner), e.g. local
+            features + PnP; None: the network's pose (or retrieval's) is the answer.
 
     Candidate crops and the map are always scored by the dropout-free network; only
     the chosen crop is sampled (backbone.mc_samples, options.crop_samples), once.
@@ -104,6 +109,7 @@ class Relocalizer:
         search: CropSearch,
         options: QueryOptions | None = None,
         device: str | torch.device = "cpu",
+        refiner: PoseRefiner | None = None,
     ) -> None:
         options = QueryOptions() if options is None else options
         if not isinstance(options, QueryOptions):
@@ -112,6 +118,7 @@ class Relocalizer:
         check_options(options, backbone, index, self.scorer.crop_scale)
         self.options = options
         self.search = search
+        self.refiner = refiner
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
 
@@ -147,6 +154,7 @@ class Relocalizer:
             search or self.search,
             options or self.options,
             self.device,
+            self.refiner,
         )
         swapped.map_poses = self.map_poses
         swapped.metadata = self.metadata
@@ -169,25 +177,41 @@ class Relocalizer:
         images: Sequence[np.ndarray],
         poses: Sequence[Pose] | None = None,
         quiet: bool = True,
+        frames: Sequence[object] | None = None,
     ) -> np.ndarray:
-        """Build the map from training images (and their poses, for retrieval).
+        """Build the map from training images (and their poses, for retrieval and the
+        refiner).
+
+        Args:
+            frames: per image, what the refiner may use of it: objects with `name`,
+                `camera`, `depth_path` and `depth_units_per_metre`, such as the
+                dataset's relocfw.data.frames.Frame (a missing attribute: unknown).
 
         Returns:
             The [N, D] training descriptors.
 
         Raises:
             DataError: an image is not H x W x 3 uint8 RGB (naming its index), or
-                retrieval lacks poses.
+                retrieval or the refiner lacks poses, or a per-image list is short.
         """
-        if self.options.retrieval_k > 0 and (poses is None or len(poses) != len(images)):
-            raise DataError("retrieval needs the pose of every map image: fit(images, poses)")
+        needs_poses = self.options.retrieval_k > 0 or self.refiner is not None
+        if needs_poses and (poses is None or len(poses) != len(images)):
+            raise DataError(
+                "retrieval and refinement need the pose of every map image: fit(images, poses)"
+            )
         features = self.describe(images, quiet=quiet)
         self.index.fit(features)
         self.map_poses = list(poses) if poses is not None else []
+        if self.refiner is not None:
+            views = map_images(images, self.map_poses, frames)
+            self.refiner.fit(views, features, quiet=quiet)
         return features
 
-    def localize(self, image: np.ndarray) -> Localization:
+    def localize(self, image: np.ndarray, camera: PinholeCamera | None = None) -> Localization:
         """Pose of one RGB image (H x W x 3 uint8) through the crop search.
+
+        Args:
+            camera: the image's intrinsics, for a refiner; None: the map's camera.
 
         Raises:
             DataError: the image is of another type or shape (e.g. float, RGBA).
@@ -195,14 +219,21 @@ class Relocalizer:
         check_rgb_image(image)
         query = QueryWindows(image, self.scorer, self.options.scoring)  # strip
         (crop,) = search_together(self.search, [query])  # search
-        return self.answer(query, crop)
+        return self.answer(query, crop, camera=camera)
 
-    def answer(self, query: QueryWindows, crop: Crop, seconds: float | None = None) -> Localization:
-        """The Localization of a query's chosen crop: rerank -> sample -> pose.
+    def answer(
+        self,
+        query: QueryWindows,
+        crop: Crop,
+        seconds: float | None = None,
+        camera: PinholeCamera | None = None,
+    ) -> Localization:
+        """The Localization of a query's chosen crop: rerank -> sample -> pose -> refine.
 
         Args:
             seconds: the query's time when the caller measures it (`localize_many`
                 shares a group's time among its queries); default: since the strip.
+            camera: the query's intrinsics, for the refiner (None: the map's).
         """
         crop = query.rerank(crop, self.options.rerank)
         distance, answer = query.answer_of(crop)
@@ -213,8 +244,12 @@ class Relocalizer:
                 self.scorer, query.strip, crop, answer, self.options.crop_samples, streams
             )
             passes += sampled
+        pose, refined = self.pose_of(answer), None
+        if self.refiner is not None:
+            refined = self.refiner.refine(RefineQuery(query.image, pose, answer.features, camera))
+            pose = refined.pose
         return Localization(
-            pose=self.pose_of(answer),
+            pose=pose,
             crop=crop,
             distance=distance,
             evaluations=query.evaluations,
@@ -222,6 +257,9 @@ class Relocalizer:
             position_spread=float(answer.position_spread),
             orientation_spread_deg=float(answer.orientation_spread_deg),
             network_passes=passes,
+            refine_confidence=float("nan") if refined is None else float(refined.confidence),
+            fell_back=refined is not None and refined.fell_back,
+            refine_seconds=dict(refined.seconds) if refined is not None else {},
         )
 
     def pose_of(self, answer: NetworkAnswers) -> Pose:
@@ -233,7 +271,10 @@ class Relocalizer:
         return Pose(answer.positions, answer.quaternions)
 
     def localize_many(
-        self, images: Sequence[np.ndarray], queries_at_once: int | None = None
+        self,
+        images: Sequence[np.ndarray],
+        queries_at_once: int | None = None,
+        cameras: Sequence[PinholeCamera | None] | None = None,
     ) -> list[Localization]:
         """Poses of many images, `queries_at_once` (default: the options') searched
         together: their plain windows go through shared forward passes (at most
@@ -242,6 +283,7 @@ class Relocalizer:
         Each query's search runs as in `localize` (its own random stream, its own
         windows), so the answers are `localize`'s; only the network calls are merged.
         A query's `seconds` is its group's time shared equally among its queries.
+        `cameras`: each image's intrinsics, for a refiner (None: the map's camera).
 
         Raises:
             DataError: an image is not H x W x 3 uint8 RGB (naming its index), before
@@ -249,17 +291,44 @@ class Relocalizer:
         """
         check_rgb_images(images)
         size = self.options.replace(queries_at_once=queries_at_once).queries_at_once
+        cameras = [None] * len(images) if cameras is None else list(cameras)
+        if len(cameras) != len(images):
+            raise DataError(f"{len(images)} images but {len(cameras)} cameras")
         answers: list[Localization] = []
         for start in range(0, len(images), size):
-            group = images[start : start + size]
+            group, group_cameras = images[start : start + size], cameras[start : start + size]
             if len(group) == 1:
-                answers.append(self.localize(group[0]))
+                answers.append(self.localize(group[0], group_cameras[0]))
                 continue
             started = time.perf_counter()
             queries = [QueryWindows(image, self.scorer, self.options.scoring) for image in group]
             crops = search_together(self.search, queries)
             score_chosen_together(queries, crops, self.options.rerank)
-            found = [self.answer(q, c) for q, c in zip(queries, crops, strict=True)]
+            found = [
+                self.answer(q, c, camera=camera)
+                for q, c, camera in zip(queries, crops, group_cameras, strict=True)
+            ]
             seconds = (time.perf_counter() - started) / len(group)
             answers += [dataclasses.replace(a, seconds=seconds) for a in found]
         return answers
+
+
+def map_images(
+    images: Sequence[np.ndarray], poses: Sequence[Pose], frames: Sequence[object] | None
+) -> list[MapImage]:
+    """The refiner's view of the map images; DataError when `frames` does not have one
+    entry per image."""
+    if frames is not None and len(frames) != len(images):
+        raise DataError(f"fit: {len(images)} images but {len(frames)} frames")
+    frames = [None] * len(images) if frames is None else list(frames)
+    return [
+        MapImage(
+            name=getattr(frame, "name", f"map image {i}"),
+            image=image,
+            pose=pose,
+            camera=getattr(frame, "camera", None),
+            depth_path=getattr(frame, "depth_path", None),
+            depth_units_per_metre=getattr(frame, "depth_units_per_metre", 1000.0),
+        )
+        for i, (image, pose, frame) in enumerate(zip(images, poses, frames, strict=True))
+    ]

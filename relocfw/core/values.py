@@ -89,6 +89,11 @@ class Localization:
     orientation_spread_deg: float = float("nan")
     # Network cost in whole-input passes; None: one per crop scored (scoring=plain).
     network_passes: float | None = None
+    # The refiner's (relocfw.core.refinement): its confidence (e.g. PnP inliers; NaN
+    # without one), whether it fell back to the network's pose, its time per part.
+    refine_confidence: float = float("nan")
+    fell_back: bool = False
+    refine_seconds: dict[str, float] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if self.network_passes is None:

@@ -129,6 +129,10 @@ def save_model(
 ) -> Path:
     """Write `relocalizer` (fitted) to `path`, atomically.
 
+    The file holds the network, the map, the crop search and the query options; a
+    refiner (relocfw.core.refinement) is not stored yet: its map structure is cached
+    apart (refine=features), and a loaded model answers with the network's pose.
+
     Args:
         path: the model file to write.
         relocalizer: a fitted Relocalizer.

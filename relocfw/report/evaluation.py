@@ -115,7 +115,26 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
         "mean_network_passes": float(np.mean([a.network_passes for a in result.answers])),
         "mean_crops_scored": float(np.mean([a.evaluations for a in result.answers])),
     }
-    return summary | uncertainty_columns(result)
+    return summary | refine_columns(result) | uncertainty_columns(result)
+
+
+def refine_columns(result: MethodResult) -> dict[str, float | int]:
+    """A refined method's fallbacks (queries answered with the network's pose because
+    the refiner found none), its median confidence and its median ms per part; none
+    for a method without a refiner."""
+    answers = result.answers
+    refined = [a for a in answers if a.fell_back or np.isfinite(a.refine_confidence)]
+    if not refined:
+        return {}
+    columns: dict[str, float | int] = {
+        "refine_fell_back": sum(a.fell_back for a in answers),
+        "refine_median_confidence": float(np.median([a.refine_confidence for a in refined])),
+    }
+    parts = dict.fromkeys(part for a in refined for part in a.refine_seconds)
+    for part in parts:
+        seconds = [a.refine_seconds.get(part, 0.0) for a in refined]
+        columns[f"refine_median_ms_{part}"] = 1000.0 * float(np.median(seconds))
+    return columns
 
 
 def uncertainty_quality_of(result: MethodResult) -> dict[str, object] | None:

@@ -19,8 +19,8 @@ from pathlib import Path
 import relocfw
 
 RECORD = Path(__file__).with_name("api_surface.json")
-INTERFACES = ("Backbone", "SimilarityIndex", "CropSearch", "CropDistance")
-VALUES = ("Crop", "Pose", "PoseOutput", "Localization")
+INTERFACES = ("Backbone", "SimilarityIndex", "CropSearch", "CropDistance", "PoseRefiner")
+VALUES = ("Crop", "Pose", "PoseOutput", "Localization", "MapImage", "RefineQuery", "Refined")
 
 
 def member_description(member: object) -> str:

@@ -101,3 +101,9 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     print(
         f"model file: {model}  (relocfw task=localize localize.model={model} localize.images=...)"
     )
+    if method.refiner is not None:
+        print(
+            f"note: {model.name} holds the network, map and crop search, not the "
+            f"refine={choices['refine']} stage (model files do not store refiners yet): "
+            "task=localize answers with the network's pose"
+        )
