@@ -1,7 +1,10 @@
 """Test-split throughput: one query at a time against groups searched together.
 
 Loads a model file written by `relocfw` (task=relocalize) and the test split of the
-dataset it was built on, then localizes the split with each crop search twice: one
+dataset it was built on (`--model`), or, without one, builds the paper's geometry as
+benchmarks/query_cost.py does: a freshly initialised 224-pixel GoogLeNet (timing does
+not depend on the weights), a k-means map of rendered 640 x 480 training views and
+rendered test-lap queries. It then localizes the queries with each crop search twice: one
 query at a time (`Relocalizer.localize`) and in groups whose searches run in one
 loop, their candidate windows in merged forward passes (`Relocalizer.localize_many`,
 relocfw.core.search_loop). The two modes take turns, `--repeats` times each, so a slow
@@ -11,6 +14,7 @@ Reports queries/s of both, the gain, and how far the two modes' answers are apar
 
     .venv/bin/python benchmarks/batched_throughput.py \\
         --model outputs/paper_geometry/model.relocfw --group 16
+    .venv/bin/python benchmarks/batched_throughput.py --queries 32 --group 16
 """
 
 from __future__ import annotations
@@ -26,15 +30,18 @@ from common import (  # benchmarks/, the script's own folder
     DEFAULT_CACHE,
     device_name,
     model_frames,
+    render_views,
     with_search,
     write_json,
 )
 from shared_scoring import pose_difference
 
-from relocfw import load_model
+from relocfw import QueryOptions, Relocalizer, load_model
 from relocfw.data.frames import read_images
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
+from relocfw.plugins.kmeans_index import KMeansIndex
+from relocfw.plugins.posenet import PoseNet
 from relocfw.plugins.sweep_crop import SweepCrop
 
 SETTINGS = {
@@ -54,7 +61,8 @@ def timed(run) -> tuple[list, float]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--model", type=Path, required=True)
+    parser.add_argument("--model", type=Path, help="a model file; default: the paper's geometry")
+    parser.add_argument("--map-images", type=int, default=60, help="without --model")
     parser.add_argument("--cache", type=Path, default=DEFAULT_CACHE)
     parser.add_argument("--device", default="cpu", help="cpu, cuda, cuda:1, ...")
     parser.add_argument("--group", type=int, default=16, help="queries localized together")
@@ -67,14 +75,26 @@ def main() -> None:
     )
     args = parser.parse_args()
     rows = []
-    frames = model_frames(load_model(args.model), args.cache.expanduser())
-    images = read_images(frames[: args.queries] if args.queries else frames, quiet=True)
+    if args.model is not None:
+        frames = model_frames(load_model(args.model), args.cache.expanduser())
+        images = read_images(frames[: args.queries] if args.queries else frames, quiet=True)
+    else:
+        torch.manual_seed(0)
+        network = PoseNet(input_size=224).eval()
+        images, _ = render_views(args.queries or 32, -1)
+        map_images, _ = render_views(args.map_images, 0)
     for name in args.only:
         crop, scoring = SETTINGS[name]
-        loaded = load_model(
-            args.model, args.device, {"batch_size": args.batch_size, "scoring": scoring}
-        )
-        relocalizer = with_search(loaded, crop())
+        if args.model is not None:
+            loaded = load_model(
+                args.model, args.device, {"batch_size": args.batch_size, "scoring": scoring}
+            )
+            relocalizer = with_search(loaded, crop())
+        else:
+            options = QueryOptions(batch_size=args.batch_size, scoring=scoring)
+            index = KMeansIndex(k=min(40, args.map_images))
+            relocalizer = Relocalizer(network, index, crop(), options, args.device)
+            relocalizer.fit(map_images)
         relocalizer.localize_many(images[: args.group], args.group)  # warm-up
         single_runs, many_runs = [], []
         for _ in range(args.repeats):  # the two modes take turns
@@ -107,7 +127,7 @@ def main() -> None:
             f"max difference {r['max_pose_difference_m']:.1e} m"
         )
     report = {
-        "model": str(args.model),
+        "model": str(args.model) if args.model else "untrained PoseNet-224, rendered views",
         "image": list(images[0].shape[1::-1]),
         "input_size": int(relocalizer.backbone.input_size),
         "group": args.group,
