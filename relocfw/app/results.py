@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import io
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -41,7 +42,20 @@ def run_method(
         quiet=quiet,
         frames=frames,
     )
+    note_skipped_views(method, relocalizer)
     return evaluate(method, relocalizer, *test, quiet=quiet), features
+
+
+def note_skipped_views(method: str, relocalizer: Relocalizer) -> None:
+    """Say which map images the refiner could not use (e.g. no depth): never silent."""
+    skipped = tuple(getattr(relocalizer.refiner, "skipped_views", ()))
+    if skipped:
+        first = skipped[0]
+        print(
+            f"note: {method}: {len(skipped)} of {len(relocalizer.map_poses)} map images give "
+            f"the refiner no 3-D point (first: {first.name}: {first.reason})",
+            file=sys.stderr,
+        )
 
 
 def summary_csv(summaries: Sequence[dict[str, Any]]) -> str:

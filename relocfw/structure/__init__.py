@@ -3,29 +3,54 @@
 One job per module: `features` (SIFT keypoints, RootSIFT descriptors), `matching`
 (mutual nearest neighbours with Lowe's ratio test, one matrix product), `lifting`
 (keypoints to world points with a depth map), `triangulation` (world points from two
-posed views), `absolute_pose` (P3P LO-RANSAC and refinement through PoseLib). The
+posed views), `absolute_pose` (P3P LO-RANSAC and refinement through PoseLib);
+`map_view` (a map image as the builders take it), `structure_map` (the map's
+features and 3-D points, built from depth or by triangulation, one npz file, a
+cache), `query_solver` (one query's pose against the map, keyframe choice). The
 pinhole camera is `relocfw.core.camera` (relocfw.data reads it from files and may
 import only the core); it is re-exported here.
 
-This part may import only relocfw.core (tests/core/test_layout.py).
+This part may import only relocfw.core and relocfw.data (tests/core/test_layout.py).
 """
 
 from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.structure.absolute_pose import AbsolutePose, solve_absolute_pose
 from relocfw.structure.features import LocalFeatures, extract_rootsift
 from relocfw.structure.lifting import lift_keypoints
+from relocfw.structure.map_view import MapView
 from relocfw.structure.matching import match_against_views, mutual_nearest_neighbours
+from relocfw.structure.query_solver import StructureAnswer, keyframes_by_pose, localize_against
+from relocfw.structure.structure_map import (
+    SkippedView,
+    StructureMap,
+    build_by_triangulation,
+    build_from_depth,
+    cached_structure_map,
+    structure_key,
+    triangulation_partners,
+)
 from relocfw.structure.triangulation import triangulate
 
 __all__ = [
     "SEVENSCENES_DEFAULT",
     "AbsolutePose",
     "LocalFeatures",
+    "MapView",
     "PinholeCamera",
+    "SkippedView",
+    "StructureAnswer",
+    "StructureMap",
+    "build_by_triangulation",
+    "build_from_depth",
+    "cached_structure_map",
     "extract_rootsift",
+    "keyframes_by_pose",
     "lift_keypoints",
+    "localize_against",
     "match_against_views",
     "mutual_nearest_neighbours",
     "solve_absolute_pose",
+    "structure_key",
     "triangulate",
+    "triangulation_partners",
 ]

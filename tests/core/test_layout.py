@@ -24,7 +24,7 @@ MAY_IMPORT = {
     "model": {"core"},
     "data": {"core"},
     "report": {"core", "model", "data"},
-    "structure": {"core"},
+    "structure": {"core", "data"},
     "app": {"core", "model", "data", "report", "structure", "plugins"},
 }
 

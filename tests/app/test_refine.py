@@ -1,0 +1,64 @@
+"""refine=features end to end: the structure rows of task=compare, and their refusals."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from tests.cli_runs import relocfw, relocfw_here
+from tests.conftest import TINY_MODEL
+from tests.data.formats import write_folder
+
+# A synthetic scene large enough for SIFT (160 x 120), still rendered in seconds.
+SCENE = [
+    "dataset.width=160",
+    "dataset.height=120",
+    "dataset.train_laps=2",
+    "dataset.train_frames_per_lap=12",
+    "dataset.test_frames=6",
+]
+
+
+def test_the_structure_rows_beat_an_untrained_network(tmp_path):
+    pytest.importorskip("poselib")
+    run_dir = tmp_path / "compare"
+    args = [*TINY_MODEL, *SCENE, "task=compare", "methods=structure", "compare.crop_seeds=null"]
+    result = relocfw([*args, f"hydra.run.dir={run_dir}"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    header = (run_dir / "comparison.csv").read_text().splitlines()[0]
+    for row in ("Structure (features + depth)", "Structure RGB-only", "PoseNet + features"):
+        assert row in header
+    summary = {s["method"]: s for s in json.loads((run_dir / "summary_synthetic.json").read_text())}
+    depth, network = summary["Structure (features + depth)"], summary["PoseNet"]
+    # Three training steps: the network is lost; rendered depth + PnP is not.
+    assert depth["median_position_m"] < 0.1 < network["median_position_m"]
+    assert depth["refine_fell_back"] < 6 and "refine_median_ms_solve" in depth
+    assert "refine_fell_back" not in network
+    # The structure is built once per kind (depth, triangulated) and cached.
+    assert len(list((tmp_path / "cache" / "structure").glob("*.npz"))) == 2
+
+
+def test_a_dataset_without_cameras_is_refused_by_name(tiny_scene, tmp_path):
+    pytest.importorskip("poselib")
+    write_folder(tiny_scene, tmp_path / "folder")
+    args = [*TINY_MODEL, "dataset=folder", f"dataset.root={tmp_path / 'folder'}"]
+    result = relocfw_here([*args, "refine=features"], tmp_path)
+    assert result.returncode == 2
+    (line,) = result.stderr.strip().splitlines()
+    assert line.startswith("error: refine=features needs the camera intrinsics of every map")
+    assert "has none" in line
+
+
+def test_map_images_without_depth_are_named_not_dropped(tiny_scene, tmp_path):
+    pytest.importorskip("poselib")
+    root = tmp_path / "data"
+    shutil.copytree(tiny_scene, root / "room")
+    (root / "room" / "seq-01" / "frame-000002.depth.png").unlink()
+    args = [*TINY_MODEL, "dataset=sevenscenes", f"dataset.root={root}", "dataset.scene=room"]
+    result = relocfw_here([*args, "refine=features", "crop=centre"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "1 of 16 map images give the refiner no 3-D point (first: seq-01/frame-000002" in (
+        result.stderr
+    )
