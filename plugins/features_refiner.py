@@ -85,6 +85,9 @@ class FeaturesRefiner(PoseRefiner):
         """What the map's structure depends on besides the map images (its cache key)."""
         return {"structure": self.structure_source, "max_features": self.max_features}
 
+    def check_map(self, frames: Sequence[object]) -> None:
+        map_camera(frames)
+
     def fit(self, views: Sequence[MapImage], descriptors: np.ndarray, quiet: bool = True) -> None:
         quiet = quiet or self.quiet
         self.camera = map_camera(views)
@@ -158,9 +161,10 @@ class FeaturesRefiner(PoseRefiner):
         return Refined(answer.pose, float(answer.inliers), False, seconds)
 
 
-def map_camera(views: Sequence[MapImage]) -> PinholeCamera | None:
+def map_camera(views: Sequence[object]) -> PinholeCamera | None:
     """The map images' one camera (queries default to it), None where they differ;
-    ConfigError naming the first map image without one."""
+    ConfigError naming the first map image without one (views: anything with `name`
+    and `camera`, MapImages or relocfw.data.frames.Frames)."""
     for view in views:
         if view.camera is None:
             raise ConfigError(

@@ -49,6 +49,7 @@ def test_a_dataset_without_cameras_is_refused_by_name(tiny_scene, tmp_path):
     (line,) = result.stderr.strip().splitlines()
     assert line.startswith("error: refine=features needs the camera intrinsics of every map")
     assert "has none" in line
+    assert not (tmp_path / "cache" / "checkpoints").exists()  # refused before training
 
 
 def test_map_images_without_depth_are_named_not_dropped(tiny_scene, tmp_path):

@@ -56,6 +56,8 @@ def trained(
         world.barrier()
     if map_size:
         method.index.check_map_size(len(train[0]))
+        if method.refiner is not None:
+            method.refiner.check_map(train[0])
     checkpoint = prepare_model(
         cfg,
         method,
