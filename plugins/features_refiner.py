@@ -11,6 +11,8 @@ fewer than `min_inliers` inliers it answers the network's pose, flagged as falle
 
 from __future__ import annotations
 
+import hashlib
+import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -64,26 +66,35 @@ class FeaturesRefiner(PoseRefiner):
         cache_dir: str | Path | None = None,
         quiet: bool = False,
     ) -> None:
+        # Every option is checked here, before training and the map's structure, and
+        # named as the command line spells it (refine.ratio, ...).
         if structure not in STRUCTURES:
-            raise ConfigError(
-                f"structure must be one of {', '.join(STRUCTURES)}, got {structure!r}"
-            )
+            choices = ", ".join(STRUCTURES)
+            raise ConfigError(f"refine.structure must be one of {choices}, got {structure!r}")
         if keyframes not in KEYFRAMES:
             choices = ", ".join(KEYFRAMES)
-            raise ConfigError(f"keyframes must be one of {choices}, got {keyframes!r}")
+            raise ConfigError(f"refine.keyframes must be one of {choices}, got {keyframes!r}")
         self.structure_source = structure
         self.keyframes = keyframes
-        self.count = integer_at_least("count", count, 1)
-        self.max_features = integer_at_least("max_features", max_features, 8)
-        self.ratio = float(ratio)
-        self.max_error_px = float(max_error_px)
-        self.min_inliers = integer_at_least("min_inliers", min_inliers, 4)
+        self.count = integer_at_least("refine.count", count, 1)
+        self.max_features = integer_at_least("refine.max_features", max_features, 8)
+        self.ratio = positive_number("refine.ratio", ratio, most=1.0)
+        self.max_error_px = positive_number("refine.max_error_px", max_error_px)
+        self.min_inliers = integer_at_least("refine.min_inliers", min_inliers, 4)
         self.cache_dir = None if cache_dir is None else Path(cache_dir).expanduser()
         self.quiet = bool(quiet)
 
-    def settings(self) -> dict:
-        """What the map's structure depends on besides the map images (its cache key)."""
-        return {"structure": self.structure_source, "max_features": self.max_features}
+    def settings(self, views: Sequence[MapImage]) -> dict:
+        """What the map's structure depends on besides names, poses and cameras (its
+        cache key): the options, each image's pixels, and each depth file as it is
+        now (path, scale, size, modification time), so new or changed depth maps or
+        re-rendered images are never answered from an old cache."""
+        return {
+            "structure": self.structure_source,
+            "max_features": self.max_features,
+            "images": [image_digest(v.image) for v in views],
+            "depth": [depth_file_state(v) for v in views],
+        }
 
     def check_map(self, frames: Sequence[object]) -> None:
         map_camera(frames)
@@ -115,7 +126,7 @@ class FeaturesRefiner(PoseRefiner):
             self.structure = build()
             return
         key = structure_key(
-            [v.name for v in views], self.poses, [v.camera for v in views], self.settings()
+            [v.name for v in views], self.poses, [v.camera for v in views], self.settings(views)
         )
         self.structure = cached_structure_map(self.cache_dir, key, build, quiet)
 
@@ -159,6 +170,34 @@ class FeaturesRefiner(PoseRefiner):
         if not answer.success:
             return Refined(query.network_pose, float(answer.inliers), True, seconds)
         return Refined(answer.pose, float(answer.inliers), False, seconds)
+
+
+def image_digest(image: np.ndarray) -> str:
+    """A short hash of an image's pixels (about a second for 400 VGA images)."""
+    return hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=8).hexdigest()
+
+
+def positive_number(key: str, value: object, most: float | None = None) -> float:
+    """`value` as a finite float > 0 (and <= `most`), or a ConfigError naming `key`."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{key} must be a number, got {value!r}") from None
+    if not (math.isfinite(number) and number > 0 and (most is None or number <= most)):
+        bound = f" and at most {most:g}" if most is not None else ""
+        raise ConfigError(f"{key} must be above 0{bound}, got {value!r}")
+    return number
+
+
+def depth_file_state(view: MapImage) -> list:
+    """A depth file as the cache key sees it: path, scale, and size and modification
+    time when it exists."""
+    if view.depth_path is None:
+        return [None]
+    path = Path(view.depth_path)
+    stat = path.stat() if path.is_file() else None
+    state = [stat.st_size, stat.st_mtime_ns] if stat is not None else ["missing"]
+    return [str(path), view.depth_units_per_metre, *state]
 
 
 def map_camera(views: Sequence[object]) -> PinholeCamera | None:

@@ -7,9 +7,11 @@ one run of every refusal path.
 
 `relocfw_here` runs the same entry point (`relocfw.app.cli.main`) in this process,
 with the command line, working directory, environment and standard streams of a
-process of its own, and gives back the same three things. Refusals that end before any
-work (a bad option, a broken dataset, a bad model file) cost well under a second this
-way, so the many cases of one refusal path run here.
+process of its own, and gives back the same three things; afterwards it puts back the
+environment, torch's random stream, logging and the plugin listing's cache. Refusals
+that end before any work (a bad option, a broken dataset, a bad model file) cost well
+under a second this way, so the many cases of one refusal path run here; runs that do
+real work use `relocfw`.
 """
 
 from __future__ import annotations
@@ -49,10 +51,14 @@ class Finished:
 def relocfw_here(args, tmp_path, cache=None, **env_extra) -> Finished:
     """Run the CLI in this process, as `relocfw` would in its own; everything it
     changes for the run (argv, cwd, environment, streams, logging) is put back."""
+    import torch
+
     from relocfw.app import cli
+    from relocfw.app.plugin_discovery import discover_options
 
     env = {"RELOCFW_CACHE": str(cache or tmp_path / "cache"), **env_extra}
-    saved_env = {key: os.environ.get(key) for key in env}
+    saved_env = dict(os.environ)  # imports during the run may set more than `env`
+    saved_rng = torch.random.get_rng_state()  # the CLI seeds torch's global stream
     saved_argv, saved_cwd = sys.argv, Path.cwd()
     root = logging.getLogger()
     saved_handlers, saved_level = list(root.handlers), root.level
@@ -70,11 +76,10 @@ def relocfw_here(args, tmp_path, cache=None, **env_extra) -> Finished:
     finally:
         sys.argv = saved_argv
         os.chdir(saved_cwd)
-        for key, value in saved_env.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
+        os.environ.clear()
+        os.environ.update(saved_env)
+        torch.random.set_rng_state(saved_rng)
+        discover_options.cache_clear()  # the next run looks for plugins anew
         # Hydra points the root logger at the run's console and log file.
         for handler in root.handlers:
             if handler not in saved_handlers:

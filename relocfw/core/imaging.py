@@ -25,10 +25,24 @@ def read_rgb(path: Path) -> np.ndarray:
     if not path.is_file():
         raise DataError(f"image not found: {path}")
     data = np.fromfile(path, dtype=np.uint8)
+    if is_16_bit_grey_png(data):
+        raise DataError(f"{path} is a 16-bit single-channel PNG (a depth map?), not a colour image")
     image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     if image is None:
         raise DataError(f"cannot decode image (corrupt or not an image): {path}")
     return np.ascontiguousarray(image[:, :, ::-1])
+
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def is_16_bit_grey_png(data: np.ndarray) -> bool:
+    """Whether PNG bytes hold a 16-bit grey image: how 7-Scenes, TUM and the synthetic
+    scene store depth. Decoded as colour it would silently become a nonsense image,
+    so the header is read first (IHDR: bit depth at byte 24, colour type at 25)."""
+    if data.size < 26 or data[:8].tobytes() != PNG_SIGNATURE:
+        return False
+    return int(data[24]) == 16 and int(data[25]) in (0, 4)  # grey, grey + alpha
 
 
 def conversion_hint(dtype: np.dtype) -> str:

@@ -30,7 +30,8 @@ class Frame:
         camera: the pinhole intrinsics of the image at its full resolution (OpenCV's
             convention, relocfw.core.camera), or None where the dataset gives none or
             its camera has lens distortion (see relocfw.data.colmap_cameras.pinhole_of).
-        depth_path: a depth map of the frame, registered to the colour image: a
+        depth_path: a depth map of the frame, read pixel for pixel with the colour
+            image (exactly registered for the synthetic scene, roughly for 7-Scenes): a
             single-channel 16-bit PNG of z along the optical axis in
             `depth_units_per_metre` units per metre, 0 = no reading; None where the
             dataset has none. Read it with relocfw.data.depth.read_frame_depth.

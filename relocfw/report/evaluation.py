@@ -69,8 +69,15 @@ def evaluate(
     the timed run: the first query pays for lazy allocations, thread pools and kernel
     choices, and timing it would charge whichever method runs first.
     """
+    # A refiner solves each query with its own camera (a test split may come from
+    # another sensor than the map); other pipelines take images only.
+    refined = getattr(relocalizer, "refiner", None) is not None
+    cameras = [getattr(frame, "camera", None) for frame in frames]
     if warm_up and len(images):
-        relocalizer.localize(images[0])
+        if refined:
+            relocalizer.localize(images[0], cameras[0])
+        else:
+            relocalizer.localize(images[0])
     progress = Progress(len(frames), f"relocalizing ({method})", quiet=quiet)
     answers = []
     # Any object with `localize` works; a Relocalizer's options say how many at once.
@@ -79,8 +86,13 @@ def evaluate(
     for start in range(0, len(images), group):
         # Groups of queries share forward passes (Relocalizer.localize_many); one
         # query at a time when queries_at_once is 1, its latency then its own.
-        if group == 1:
+        if group == 1 and refined:
+            answers.append(relocalizer.localize(images[start], cameras[start]))
+        elif group == 1:
             answers.append(relocalizer.localize(images[start]))
+        elif refined:
+            chunk = slice(start, start + group)
+            answers += relocalizer.localize_many(images[chunk], group, cameras[chunk])
         else:
             answers += relocalizer.localize_many(images[start : start + group], group)
         progress.advance(min(group, len(images) - start))

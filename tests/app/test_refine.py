@@ -58,7 +58,7 @@ def test_map_images_without_depth_are_named_not_dropped(tiny_scene, tmp_path):
     shutil.copytree(tiny_scene, root / "room")
     (root / "room" / "seq-01" / "frame-000002.depth.png").unlink()
     args = [*TINY_MODEL, "dataset=sevenscenes", f"dataset.root={root}", "dataset.scene=room"]
-    result = relocfw_here([*args, "refine=features", "crop=centre"], tmp_path)
+    result = relocfw([*args, "refine=features", "crop=centre"], tmp_path)
     assert result.returncode == 0, result.stderr
     assert "1 of 16 map images give the refiner no 3-D point (first: seq-01/frame-000002" in (
         result.stderr

@@ -78,3 +78,17 @@ def test_valid_uint8_images_still_localize_and_are_checked_without_a_copy(reloca
     many = relocalizer.localize_many([image, rgb(6)], queries_at_once=2)
     assert np.allclose(many[0].pose.position, answer.pose.position, atol=1e-5)
     assert relocalizer.describe([image, rgb(6)]).shape == (2, 16)
+
+
+def test_a_16_bit_depth_png_is_not_read_as_a_colour_image(tmp_path):
+    import cv2
+
+    from relocfw.core.imaging import read_rgb
+
+    depth = tmp_path / "frame-000000.depth.png"
+    cv2.imwrite(str(depth), np.full((4, 6), 1500, dtype=np.uint16))
+    with pytest.raises(DataError, match="16-bit single-channel PNG \\(a depth map\\?\\)"):
+        read_rgb(depth)
+    colour = tmp_path / "grey.png"
+    cv2.imwrite(str(colour), np.full((4, 6), 200, dtype=np.uint8))
+    assert read_rgb(colour).shape == (4, 6, 3)  # an 8-bit grey image is still read

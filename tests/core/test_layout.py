@@ -1,4 +1,4 @@
-"""The package tree is the design: five parts, imports running one way, no cycle.
+"""The package tree is the design: six parts, imports running one way, no cycle.
 
 Every `import` in relocfw/ is read from the source (function-level ones too, since a
 lazy import hides a cycle without removing it), so the checks hold for code paths

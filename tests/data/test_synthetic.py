@@ -4,6 +4,7 @@ from dataclasses import asdict
 
 import cv2
 import numpy as np
+import pytest
 
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.geometry import pose_to_matrix
@@ -96,7 +97,13 @@ def colour_and_pose_digest(folder) -> str:
     return digest.hexdigest()
 
 
+DIGEST_TAKEN_WITH = ("2.4.6", "5.0.0")  # numpy, OpenCV
+
+
 def test_colour_images_and_poses_are_those_rendered_before_depth(tiny_scene):
+    versions = (np.__version__, cv2.__version__)
+    if versions != DIGEST_TAKEN_WITH:
+        pytest.skip(f"digest taken with numpy/OpenCV {DIGEST_TAKEN_WITH}, here {versions}")
     assert colour_and_pose_digest(tiny_scene) == COLOUR_AND_POSES_BEFORE_DEPTH
 
 
