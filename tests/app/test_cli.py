@@ -302,7 +302,7 @@ def test_the_main_job_has_no_option_outside_its_groups():
     plain = {key for key, value in cfg.items() if not hasattr(value, "keys")}
     assert plain == {"task", "seed", "device", "cache_dir", "quiet", "k"}
     assert set(cfg) - plain == {
-        *("backbone", "index", "crop", "dataset", "query", "localize", "export"),
+        *("backbone", "index", "crop", "refine", "dataset", "query", "localize", "export"),
         *("relocalize", "compare", "diagnose", "train"),
     }
     assert all(value is None for value in cfg.query.values())  # each task's default
