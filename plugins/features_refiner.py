@@ -12,7 +12,6 @@ fewer than `min_inliers` inliers it answers the network's pose, flagged as falle
 from __future__ import annotations
 
 import hashlib
-import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -21,7 +20,7 @@ import numpy as np
 
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError
-from relocfw.core.options import integer_at_least
+from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
 from relocfw.core.standardise import ZScore, check_features, k_nearest
 from relocfw.structure import (
@@ -175,18 +174,6 @@ class FeaturesRefiner(PoseRefiner):
 def image_digest(image: np.ndarray) -> str:
     """A short hash of an image's pixels (about a second for 400 VGA images)."""
     return hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=8).hexdigest()
-
-
-def positive_number(key: str, value: object, most: float | None = None) -> float:
-    """`value` as a finite float > 0 (and <= `most`), or a ConfigError naming `key`."""
-    try:
-        number = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{key} must be a number, got {value!r}") from None
-    if not (math.isfinite(number) and number > 0 and (most is None or number <= most)):
-        bound = f" and at most {most:g}" if most is not None else ""
-        raise ConfigError(f"{key} must be above 0{bound}, got {value!r}")
-    return number
 
 
 def depth_file_state(view: MapImage) -> list:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from relocfw.core.errors import ConfigError
@@ -41,4 +42,16 @@ def real_number(name: str, value: Any) -> float:
         raise ConfigError(f"{name} must be a number, got {value!r}") from None
     if number != number or number in (float("inf"), float("-inf")):
         raise ConfigError(f"{name} must be finite, got {value!r}")
+    return number
+
+
+def positive_number(key: str, value: Any, most: float | None = None) -> float:
+    """`value` as a finite float > 0 (and <= `most`), or a ConfigError naming `key`."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{key} must be a number, got {value!r}") from None
+    if not (math.isfinite(number) and number > 0 and (most is None or number <= most)):
+        bound = f" and at most {most:g}" if most is not None else ""
+        raise ConfigError(f"{key} must be above 0{bound}, got {value!r}")
     return number
