@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from relocfw.report.evaluation import MethodResult
+from relocfw.report.evaluation import MethodResult, uncertainty_signal_of
 from relocfw.report.statistics import spearman
 from relocfw.report.units import METRES, PositionUnit
 
@@ -94,20 +94,27 @@ def as_csv(header: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
     return stream.getvalue()
 
 
-def uncertainty_check(result: MethodResult, share: float = 0.25) -> dict[str, float] | None:
-    """Median errors of the most and least uncertain queries (Bayesian PoseNet).
+def uncertainty_check(
+    result: MethodResult, share: float = 0.25
+) -> dict[str, float | int | str] | None:
+    """Median errors of the most and least uncertain queries (Bayesian PoseNet, or a
+    refiner's confidence).
 
-    A useful uncertainty ranks queries by error: the top `share` by position spread
-    should have larger errors than the bottom `share`. None when not sampled.
+    A useful uncertainty ranks queries by error: the top `share` by the position
+    uncertainty (relocfw.report.evaluation.uncertainty_signal_of: the spread, or the
+    refiner's lack of confidence) should have larger errors than the bottom `share`.
+    `uncertainty_signal` names it. None when the method has no such signal.
     """
-    spread = np.array([a.position_spread for a in result.answers])
-    if np.all(np.isnan(spread)):
+    signal = uncertainty_signal_of(result)
+    if signal is None:
         return None
+    spread = signal.position
     order = np.argsort(spread)
     count = max(1, int(round(share * len(order))))
     low, high = order[:count], order[-count:]
     positions, orientations = result.position_errors(), result.orientation_errors()
     return {
+        "uncertainty_signal": signal.name,
         "queries_per_group": count,
         "least_uncertain_median_position_m": float(np.median(positions[low])),
         "most_uncertain_median_position_m": float(np.median(positions[high])),

@@ -5,17 +5,19 @@ from __future__ import annotations
 import csv
 import io
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from relocfw.core.geometry import QUATERNION_MINIMUM, orientation_error_deg, position_error
+from relocfw.core.interfaces import Backbone
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.progress import Progress
+from relocfw.core.sampling import configured_samples
 from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
 from relocfw.report.metrics import accuracy_metrics, failed_as_infinite
-from relocfw.report.uncertainty import uncertainty_quality
+from relocfw.report.uncertainty import confidence_uncertainty, uncertainty_quality
 from relocfw.report.units import METRES, PositionUnit, relabel_key
 
 
@@ -24,11 +26,15 @@ class MethodResult:
     """One method's answers on a split, aligned with its frames.
 
     Errors of a query answered without a finite pose are +inf (relocfw.report.metrics).
+    `spread_source` says what a sampled answer's spread comes from ("MC dropout",
+    "crop samples", "crop samples + MC dropout"), so tables can name the signal; ""
+    when not known (a result built by hand) or not sampled.
     """
 
     method: str
     frames: tuple[Frame, ...]
     answers: tuple[Localization, ...]
+    spread_source: str = field(default="", kw_only=True)
 
     def failed(self) -> np.ndarray:
         """[N] True where the answer has no usable pose: any non-finite number, or a
@@ -97,7 +103,23 @@ def evaluate(
             answers += relocalizer.localize_many(images[start : start + group], group)
         progress.advance(min(group, len(images) - start))
     progress.close()
-    return MethodResult(method, tuple(frames), tuple(answers))
+    return MethodResult(
+        method, tuple(frames), tuple(answers), spread_source=spread_source(relocalizer)
+    )
+
+
+def spread_source(relocalizer: object) -> str:
+    """What the chosen crop's samples are, as the uncertainty tables name it; "" when
+    nothing is sampled or `relocalizer` is not a Relocalizer (any object with
+    `localize` may be evaluated, so every attribute is optional here)."""
+    crops = int(getattr(getattr(relocalizer, "options", None), "crop_samples", 0) or 0)
+    backbone = getattr(relocalizer, "backbone", None)
+    dropout = configured_samples(backbone) if isinstance(backbone, Backbone) else 0
+    if crops > 0 and dropout > 0:
+        return "crop samples + MC dropout"
+    if crops > 0:
+        return "crop samples"
+    return "MC dropout" if dropout > 0 else ""
 
 
 def constant_answer(method: str, pose: Pose, frames: Sequence[Frame]) -> MethodResult:
@@ -114,8 +136,8 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
 
     Time is reported as the median (robust to a slow moment of the machine) and the
     mean over the queries of the timed (warmed-up) run. A failed query counts as
-    infinitely wrong. A sampled method (MC dropout) also gets its uncertainty
-    measures (`uncertainty_columns`).
+    infinitely wrong. A sampled method (MC dropout, crop samples) or a refined one
+    also gets its uncertainty measures (`uncertainty_columns`).
     """
     positions = result.position_errors()
     summary = {
@@ -130,12 +152,18 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
     return summary | refine_columns(result) | uncertainty_columns(result)
 
 
+def refined_answers(result: MethodResult) -> list[Localization]:
+    """The answers a refiner gave: those with a confidence or a fallback (an answer
+    without a refiner has neither)."""
+    return [a for a in result.answers if a.fell_back or np.isfinite(a.refine_confidence)]
+
+
 def refine_columns(result: MethodResult) -> dict[str, float | int]:
     """A refined method's fallbacks (queries answered with the network's pose because
     the refiner found none), its median confidence and its median ms per part; none
     for a method without a refiner."""
     answers = result.answers
-    refined = [a for a in answers if a.fell_back or np.isfinite(a.refine_confidence)]
+    refined = refined_answers(result)
     if not refined:
         return {}
     columns: dict[str, float | int] = {
@@ -149,25 +177,94 @@ def refine_columns(result: MethodResult) -> dict[str, float | int]:
     return columns
 
 
-def uncertainty_quality_of(result: MethodResult) -> dict[str, object] | None:
-    """relocfw.report.uncertainty's measures of a sampled method's spreads; None if unsampled."""
-    return uncertainty_quality(
-        result.position_errors(),
-        result.orientation_errors(),
-        np.array([a.position_spread for a in result.answers]),
-        np.array([a.orientation_spread_deg for a in result.answers]),
+CONFIDENCE_SIGNAL = "refiner confidence"
+
+
+@dataclass(frozen=True)
+class UncertaintySignal:
+    """What ranks one method's answers from the least to the most trustworthy.
+
+    Attributes:
+        name: what the tables' "uncertainty signal" column says: "spread (MC
+            dropout)", "spread (crop samples)", ... or CONFIDENCE_SIGNAL.
+        position: [N] the uncertainty that ranks position errors (larger: less
+            trusted; NaN: none measured, the most uncertain).
+        orientation: [N] the one that ranks orientation errors.
+        from_confidence: True when both come from the refiner's confidence.
+        fell_back: [N] where the refiner fell back to the network's pose.
+    """
+
+    name: str
+    position: np.ndarray
+    orientation: np.ndarray
+    from_confidence: bool = False
+    fell_back: np.ndarray | None = None
+
+
+def uncertainty_signal_of(result: MethodResult) -> UncertaintySignal | None:
+    """The refiner's confidence of a refined method, else the spreads of a sampled one;
+    None when it has neither.
+
+    A method both refined and sampled is measured by its confidence: the refiner
+    replaced the network's pose on every accepted query, and the spread measured the
+    samples of that network pose, not of the pose answered. The confidence ranks both
+    kinds of error (`confidence_uncertainty`: fallbacks the most uncertain).
+    """
+    if refined_answers(result):
+        confidence = np.array([a.refine_confidence for a in result.answers], dtype=np.float64)
+        fell_back = np.array([a.fell_back for a in result.answers], dtype=bool)
+        uncertainty = confidence_uncertainty(confidence, fell_back)
+        if np.all(np.isnan(uncertainty)):
+            return None  # every query fell back without a count: nothing ranks them
+        return UncertaintySignal(CONFIDENCE_SIGNAL, uncertainty, uncertainty, True, fell_back)
+    position = np.array([a.position_spread for a in result.answers], dtype=np.float64)
+    if np.all(np.isnan(position)):
+        return None
+    orientation = np.array([a.orientation_spread_deg for a in result.answers], dtype=np.float64)
+    name = f"spread ({result.spread_source})" if result.spread_source else "spread"
+    return UncertaintySignal(name, position, orientation)
+
+
+def uncertainty_of(
+    result: MethodResult,
+) -> tuple[UncertaintySignal, dict[str, object]] | None:
+    """The method's uncertainty signal and relocfw.report.uncertainty's measures of it;
+    None when it has none (neither sampled nor refined)."""
+    signal = uncertainty_signal_of(result)
+    if signal is None:
+        return None
+    quality = uncertainty_quality(
+        result.position_errors(), result.orientation_errors(), signal.position, signal.orientation
     )
+    return None if quality is None else (signal, quality)
 
 
-def uncertainty_columns(result: MethodResult) -> dict[str, float]:
-    """Flat summary columns of the uncertainty measures (none for an unsampled method)."""
-    quality = uncertainty_quality_of(result)
-    if quality is None:
+def uncertainty_quality_of(result: MethodResult) -> dict[str, object] | None:
+    """relocfw.report.uncertainty's measures of a method's uncertainty (a sampled
+    method's spreads, a refined method's confidence: `uncertainty_signal_of`); None
+    when it has none."""
+    measured = uncertainty_of(result)
+    return None if measured is None else measured[1]
+
+
+def uncertainty_columns(result: MethodResult) -> dict[str, float | str]:
+    """Flat summary columns of the uncertainty measures (none without a signal).
+
+    `uncertainty_signal` names what ranks the queries; `*_uncertainty_error_spearman`
+    is the Spearman correlation of that uncertainty with the error (positive for a
+    useful signal, whichever it is). A spread-ranked method also keeps the same value
+    as `*_spread_error_spearman`, the column earlier summaries had.
+    """
+    measured = uncertainty_of(result)
+    if measured is None:
         return {}
-    columns = {}
+    signal, quality = measured
+    columns: dict[str, float | str] = {"uncertainty_signal": signal.name}
     for kind, unit in (("position", "m"), ("orientation", "deg")):
         measures = quality[kind]
-        columns[f"{kind}_spread_error_spearman"] = measures["spearman_spread_error"]
+        if not signal.from_confidence:
+            columns[f"{kind}_spread_error_spearman"] = measures["spearman_spread_error"]
+        columns[f"{kind}_uncertainty_error_spearman"] = measures["spearman_uncertainty_error"]
         columns[f"{kind}_ause_{unit}"] = measures["ause"]
         for share, median in measures["median_after_rejecting"].items():
             columns[f"median_{kind}_{unit}_rejecting_{share}"] = median
@@ -184,6 +281,9 @@ ANSWER_COLUMNS = (
     "seconds",
     "position_spread_m",
     "orientation_spread_deg",
+    # The refiner's: what its uncertainty measures rank by (NaN / 0 without one).
+    "refine_confidence",
+    "fell_back",
 )
 POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 CSV_COLUMNS = (
@@ -198,7 +298,8 @@ CSV_COLUMNS = (
 
 
 def answer_cells(answer: Localization) -> list[str | int]:
-    """How the answer was found, in ANSWER_COLUMNS order: crop, similarity, cost, spread."""
+    """How the answer was found, in ANSWER_COLUMNS order: crop, similarity, cost, spread,
+    the refiner's confidence and fallback."""
     return [
         answer.crop.x,
         answer.crop.y,
@@ -209,6 +310,8 @@ def answer_cells(answer: Localization) -> list[str | int]:
         f"{answer.seconds:.6f}",
         f"{answer.position_spread:.6f}",
         f"{answer.orientation_spread_deg:.4f}",
+        f"{answer.refine_confidence:.6g}",
+        int(answer.fell_back),
     ]
 
 

@@ -17,7 +17,7 @@ from sklearn.manifold import TSNE
 
 from relocfw.core.atomic_files import atomic_write
 from relocfw.data.frames import Frame, positions_of
-from relocfw.report.evaluation import MethodResult
+from relocfw.report.evaluation import MethodResult, uncertainty_signal_of
 from relocfw.report.units import METRES, PositionUnit
 
 
@@ -183,32 +183,60 @@ def uncertainty_against_error(
     title: str = "",
     unit: PositionUnit = METRES,
 ) -> Path:
-    """The authors' view, one point per query: spread against error (position and
-    orientation), and each kind's sparsification curve against its oracle."""
+    """The authors' view, one point per query: uncertainty against error (position and
+    orientation), and each kind's sparsification curve against its oracle.
+
+    The uncertainty is the method's signal (relocfw.report.evaluation
+    .uncertainty_signal_of): a sampled method's spreads, or a refined method's
+    -confidence (the same for both kinds), where fallbacks are drawn as crosses at
+    their own -confidence (the measures rank them as the most uncertain).
+    """
     figure, axes = new_figure((11, 8), 2, 2)
+    signal = uncertainty_signal_of(result)
+    confidence = np.array([a.refine_confidence for a in result.answers], dtype=np.float64)
     spreads = {
         "position": np.array([a.position_spread for a in result.answers]),
         "orientation": np.array([a.orientation_spread_deg for a in result.answers]),
     }
+    by_confidence = signal is not None and signal.from_confidence
+    fell_back = np.array([a.fell_back for a in result.answers], dtype=bool)
     errors = {"position": result.position_errors(), "orientation": result.orientation_errors()}
     for row, (kind, name) in enumerate((("position", unit.name), ("orientation", "deg"))):
         measures = quality[kind]
         scatter, curves = axes[row]
         finite = np.isfinite(errors[kind])
-        scatter.scatter(spreads[kind][finite], errors[kind][finite], s=10)
-        scatter.set_xlabel(f"{kind} spread ({name})")
+        if by_confidence:
+            # -confidence, not the ranked value: the lift of fallbacks has no unit.
+            accepted, dropped = finite & ~fell_back, finite & fell_back
+            scatter.scatter(-confidence[accepted], errors[kind][accepted], s=10, label="refined")
+            if dropped.any():
+                scatter.scatter(
+                    -confidence[dropped],
+                    errors[kind][dropped],
+                    s=24,
+                    marker="x",
+                    label="fell back (ranked most uncertain)",
+                )
+                scatter.legend(fontsize=8)
+            scatter.set_xlabel("-confidence (the refiner's unit, e.g. -PnP inliers)")
+        else:
+            scatter.scatter(spreads[kind][finite], errors[kind][finite], s=10)
+            scatter.set_xlabel(f"{kind} spread ({name})")
         scatter.set_ylabel(f"{kind} error ({name})")
         scatter.set_title(f"Spearman {measures['spearman_spread_error']:.2f}", fontsize=9)
         sparsification = measures["sparsification"]
         curves.plot(
-            sparsification["fractions"], sparsification["by_uncertainty"], label="by spread"
+            sparsification["fractions"],
+            sparsification["by_uncertainty"],
+            label="by -confidence" if by_confidence else "by spread",
         )
         curves.plot(sparsification["fractions"], sparsification["oracle"], label="by true error")
         curves.set_xlabel("fraction of queries removed (most uncertain first)")
         curves.set_ylabel(f"median {kind} error of the rest ({name})")
         curves.set_title(f"AUSE {measures['ause']:.3g} {name}", fontsize=9)
         curves.legend(fontsize=8)
-    figure.suptitle(f"{result.method}: uncertainty against error {title}".strip())
+    signal_name = signal.name if signal is not None else "uncertainty"
+    figure.suptitle(f"{result.method}: {signal_name} against error {title}".strip())
     figure.tight_layout()
     return save(figure, path)
 

@@ -1,4 +1,5 @@
-"""task=compare over several training seeds: each method's spread, and paired tests."""
+"""task=compare over several training seeds: each method's spread, paired tests, and
+the quality of each method's uncertainty signal (spread or refiner confidence)."""
 
 from __future__ import annotations
 
@@ -7,9 +8,10 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from relocfw.report.comparison import as_markdown
-from relocfw.report.evaluation import MethodResult
+from relocfw.report.evaluation import MethodResult, uncertainty_of
 from relocfw.report.metrics import RECALL_BANDS, accuracy_metrics, band_key, band_title
 from relocfw.report.statistics import paired_test, spread
+from relocfw.report.uncertainty import REJECTION_SHARES
 
 # Seed -> scene -> method -> result.
 SeedResults = Mapping[int, Mapping[str, Mapping[str, MethodResult]]]
@@ -43,6 +45,41 @@ def method_statistics(
         statistics["vs_reference"] = {
             "position_m": paired_test(positions, reference[0], seed=bootstrap_seed),
             "orientation_deg": paired_test(orientations, reference[1], seed=bootstrap_seed),
+        }
+    return statistics
+
+
+def uncertainty_statistics(by_seed: Sequence[MethodResult]) -> dict[str, object] | None:
+    """One method's uncertainty measures over seeds; None when no seed has a signal.
+
+    `signal` names what ranks the queries (relocfw.report.evaluation
+    .uncertainty_signal_of; seeds that disagree are joined with " / "). Per kind:
+    `spearman_uncertainty_error` per seed (a correlation's sign can flip from one
+    seed to the next, which a mean would hide), and the spread over seeds of `ause`
+    and of each `median_after_rejecting` share. A seed without a signal counts as NaN.
+    """
+    measured = [uncertainty_of(result) for result in by_seed]
+    if all(m is None for m in measured):
+        return None
+    names = dict.fromkeys(m[0].name for m in measured if m is not None)
+    statistics: dict[str, object] = {"signal": " / ".join(names)}
+    nan = float("nan")
+    for kind in ("position", "orientation"):
+        qualities = [None if m is None else m[1][kind] for m in measured]
+        statistics[kind] = {
+            "spearman_uncertainty_error": [
+                nan if q is None else q["spearman_uncertainty_error"] for q in qualities
+            ],
+            "ause": spread([nan if q is None else q["ause"] for q in qualities]),
+            "median_after_rejecting": {
+                f"{share:.0%}": spread(
+                    [
+                        nan if q is None else q["median_after_rejecting"][f"{share:.0%}"]
+                        for q in qualities
+                    ]
+                )
+                for share in REJECTION_SHARES
+            },
         }
     return statistics
 
@@ -83,6 +120,11 @@ def seed_comparison(
             method: method_statistics(p, o, None if method == reference else ref, bootstrap_seed)
             for method, (p, o) in errors.items()
         }
+        for method in by_method:
+            # The floor has no signal; only rows with one get the key.
+            uncertainty = uncertainty_statistics([results[s][scene][method] for s in seeds])
+            if uncertainty is not None:
+                table[scene][method]["uncertainty"] = uncertainty
     return table
 
 
@@ -98,11 +140,45 @@ def paired_cell(test: Mapping[str, object], unit_format: str) -> str:
     )
 
 
+SHARES_TITLE = "/".join(f"{100 * share:g}" for share in REJECTION_SHARES)  # "10/20/30"
+UNCERTAINTY_TITLES = (
+    "uncertainty signal",
+    "Spearman pos (per seed)",
+    "Spearman ori (per seed)",
+    "AUSE pos (m)",
+    "AUSE ori (deg)",
+    f"median pos after rejecting {SHARES_TITLE} % (m)",
+    f"median ori after rejecting {SHARES_TITLE} % (deg)",
+)
+
+
+def signed(correlation: float) -> str:
+    """A correlation with its sign ("+0.42"); "nan" where it is undefined."""
+    return f"{correlation:+.2f}" if np.isfinite(correlation) else "nan"
+
+
+def uncertainty_cells(uncertainty: Mapping[str, object] | None) -> list[str]:
+    """A row's UNCERTAINTY_TITLES cells: "-" throughout for a method without a signal."""
+    if uncertainty is None:
+        return ["-"] * len(UNCERTAINTY_TITLES)
+    cells = [str(uncertainty["signal"])]
+    for kind in ("position", "orientation"):
+        cells.append("/".join(signed(r) for r in uncertainty[kind]["spearman_uncertainty_error"]))
+    for kind, fmt in (("position", ".3f"), ("orientation", ".2f")):
+        cells.append(f"{uncertainty[kind]['ause']['mean']:{fmt}}")
+    for kind, fmt in (("position", ".3f"), ("orientation", ".2f")):
+        medians = uncertainty[kind]["median_after_rejecting"].values()
+        cells.append("/".join(f"{m['mean']:{fmt}}" for m in medians))
+    return cells
+
+
 def seed_rows(
     table: Mapping[str, Mapping[str, Mapping[str, object]]], reference: str
 ) -> tuple[list[str], list[list[str]]]:
     """Header and rows, scene x method: medians as mean +- std over seeds, bands,
-    failures and the paired tests."""
+    failures and the paired tests; then, when any method has an uncertainty signal
+    (a sampled spread or a refiner's confidence), which signal each row uses and its
+    measures (UNCERTAINTY_TITLES: Spearman per seed, the rest means over seeds)."""
     header = [
         "scene",
         "method",
@@ -129,11 +205,29 @@ def seed_rows(
                 cells.append(paired_cell(tests["position_m"], ".3f"))
                 cells.append(paired_cell(tests["orientation_deg"], ".2f"))
             rows.append(cells)
+    # A table without any signal keeps its columns as they were.
+    measured = [
+        stats.get("uncertainty") for by_method in table.values() for stats in by_method.values()
+    ]
+    if any(m is not None for m in measured):
+        header += UNCERTAINTY_TITLES
+        rows = [row + uncertainty_cells(m) for row, m in zip(rows, measured, strict=True)]
     return header, rows
 
 
-def seed_footnote(seeds: Sequence[int], bands: bool = True) -> str:
-    """How to read the seed table; `bands=False` for a run without metre bands."""
+UNCERTAINTY_FOOTNOTE = (
+    "The uncertainty columns rank each method's queries by its signal: a sampled "
+    "method's spread, or a refined method's confidence (less confident is more "
+    "uncertain; fallbacks the most uncertain). Spearman of uncertainty with error is "
+    "per seed and positive for a useful signal; AUSE (over the queries with a finite "
+    "error, 0: ranked as the errors are) and the medians after rejecting the most "
+    "uncertain queries are means over seeds.\n"
+)
+
+
+def seed_footnote(seeds: Sequence[int], bands: bool = True, uncertainty: bool = False) -> str:
+    """How to read the seed table; `bands=False` for a run without metre bands,
+    `uncertainty=True` for one with uncertainty columns."""
     banded = " bands are the mean share of queries within both limits." if bands else ""
     return (
         f"\nTraining seeds {', '.join(str(s) for s in seeds)}: medians are mean +- std over "
@@ -144,11 +238,12 @@ def seed_footnote(seeds: Sequence[int], bands: bool = True) -> str:
         "corrected for the number of methods. A failed query counts as infinitely wrong; "
         "where a method's median is infinite on one seed and the reference's on another, "
         "the difference is undefined and so is the verdict.\n"
-    )
+    ) + (UNCERTAINTY_FOOTNOTE if uncertainty else "")
 
 
 def seed_markdown(
     table: Mapping[str, Mapping[str, Mapping[str, object]]], reference: str, seeds: Sequence[int]
 ) -> str:
     """The seed table in Markdown, with a note on how to read it."""
-    return as_markdown(*seed_rows(table, reference)) + seed_footnote(seeds)
+    measured = any("uncertainty" in stats for rows in table.values() for stats in rows.values())
+    return as_markdown(*seed_rows(table, reference)) + seed_footnote(seeds, uncertainty=measured)

@@ -1,8 +1,10 @@
-"""How well a sampled method's spread tells good answers from bad ones.
+"""How well a method's uncertainty tells good answers from bad ones.
 
 Bayesian PoseNet and test-time sampling give each answer a spread (position spread in
-metres, orientation spread in degrees). A useful uncertainty ranks queries by their
-error. Measured here the way the literature does:
+metres, orientation spread in degrees); a pose refiner gives each answer a confidence
+(e.g. PnP inliers), which `confidence_uncertainty` turns into an uncertainty that
+ranks the same way a spread does. A useful uncertainty ranks queries by their error.
+Measured here the way the literature does:
 
 - the Spearman rank correlation of spread with error;
 - the sparsification curve: the median error of the queries kept as the most
@@ -15,7 +17,7 @@ Failed queries and missing spreads, one rule each, the same in every measure:
 
 - A query without a spread (NaN) is the most uncertain: it is removed or rejected
   first and ranks with the largest spreads. Nothing vouches for it, and dropping it
-  would hide it.
+  would hide it. The same holds for a NaN confidence.
 - A failed query (a NaN or infinite error) is infinitely wrong, as in the accuracy
   metrics: it ranks last in Spearman and counts in the sparsification curve and the
   rejection medians (which are infinite while failures fill half of what is kept).
@@ -104,6 +106,33 @@ def rejection_medians(
     return out
 
 
+def confidence_uncertainty(confidence: np.ndarray, fell_back: np.ndarray) -> np.ndarray:
+    """[N] A refiner's confidence as an uncertainty: the less confident, the larger.
+
+    The uncertainty is -confidence (a confidence is higher for a more trustworthy
+    pose), except that every fallback ranks above every accepted answer: a fallback
+    answered the network's pose, which the refiner could not confirm, so its inlier
+    count says nothing in its favour. Fallbacks are lifted together, keeping their own
+    order. Only the ranking matters to the measures here, so the lift's size does not.
+
+    Args:
+        confidence: [N] the refiner's confidence per answer; NaN where it has none
+            (then NaN here too: the most uncertain, as a missing spread).
+        fell_back: [N] True where the refiner fell back to the network's pose.
+    """
+    uncertainty = -np.array(confidence, dtype=np.float64)
+    fell_back = np.asarray(fell_back, dtype=bool)
+    # A fallback claiming infinite confidence cannot be ranked among the others: none.
+    uncertainty[fell_back & ~np.isfinite(uncertainty)] = np.nan
+    accepted = ~fell_back & np.isfinite(uncertainty)
+    lifted = fell_back & np.isfinite(uncertainty)
+    if accepted.any() and lifted.any():
+        # Strictly above the least confident accepted answer (ties would interleave).
+        shift = uncertainty[accepted].max() - uncertainty[lifted].min() + 1.0
+        uncertainty[lifted] += max(shift, 0.0)
+    return uncertainty
+
+
 def uncertainty_quality(
     position_errors: np.ndarray,
     orientation_errors: np.ndarray,
@@ -112,8 +141,11 @@ def uncertainty_quality(
 ) -> dict[str, object] | None:
     """Every measure above for position and orientation; None when nothing was sampled.
 
-    Each kind also carries `failed_queries`, the failures AUSE leaves out (see the
-    module's rules).
+    The spreads may be any uncertainty (larger: less trusted), e.g. a refiner's
+    `confidence_uncertainty` for both kinds. Each kind carries the Spearman
+    correlation of uncertainty with error twice: `spearman_uncertainty_error`, and
+    `spearman_spread_error`, the name earlier reports read. Each kind also carries
+    `failed_queries`, the failures AUSE leaves out (see the module's rules).
     """
     position_spread = np.asarray(position_spread, dtype=np.float64)
     orientation_spread = np.asarray(orientation_spread, dtype=np.float64)
@@ -128,8 +160,10 @@ def uncertainty_quality(
         curves = ause(errors, spread)
         # Spearman ranks a missing spread with the largest, as the orderings above do.
         ranked_spread = np.where(np.isnan(spread), np.inf, spread)
+        correlation = spearman(ranked_spread, errors)
         quality[kind] = {
-            "spearman_spread_error": spearman(ranked_spread, errors),
+            "spearman_spread_error": correlation,
+            "spearman_uncertainty_error": correlation,
             "ause": curves["ause"],
             "failed_queries": curves["failed_queries"],
             "median_after_rejecting": rejection_medians(errors, spread),
