@@ -4,7 +4,7 @@ The package is six parts, imports running one way (app -> report -> model, data 
 core; structure -> data -> core), checked by tests/core/test_layout.py:
 
 - `relocfw.core`: the plugin interfaces, values, the `Relocalizer` pipeline and its
-  stages (scorer, search loop, sampling, retrieval, the `PoseRefiner` interface),
+  stages (scorer, search loop, sampling, the `PoseRefiner` interface),
   `QueryOptions`, geometry, cameras, imaging, descriptor standardisation. Plain
   Python + torch.
 - `relocfw.model`: the pose head, loss, training, checkpoints, model files, ONNX.

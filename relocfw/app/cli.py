@@ -64,8 +64,13 @@ def hydra_main(cfg: DictConfig) -> None:
 
 
 def respell_command_line() -> None:
-    """Read old spellings (`scoring=shared`) as their new keys, one note per key."""
-    arguments, found = spellings.rewrite(sys.argv[1:])
+    """Read old spellings (`scoring=shared`) as their new keys, one note per key; a
+    removed option (`query.retrieval_k`) ends in one line giving its new spelling."""
+    try:
+        arguments, found = spellings.rewrite(sys.argv[1:])
+    except ConfigError as error:
+        print(f"error: {error}", file=sys.stderr)
+        sys.exit(2)
     for rewrite in found:
         print(rewrite.note(), file=sys.stderr)
     sys.argv[1:] = arguments

@@ -88,7 +88,6 @@ class QueryConfig:
     rerank: Optional[int] = None  # noqa: UP045
     crop_samples: Optional[int] = None  # noqa: UP045
     sample_seed: Optional[int] = None  # noqa: UP045
-    retrieval_k: Optional[int] = None  # noqa: UP045
     queries_at_once: Optional[int] = None  # noqa: UP045
 
 

@@ -124,7 +124,7 @@ class Method:
     settings: TrainSettings
     identity: dict[str, Any]
     part_options: dict[str, dict[str, Any]]  # what the parts were built with
-    refiner: PoseRefiner | None = None  # refine=none: the network's (or retrieval's) pose
+    refiner: PoseRefiner | None = None  # refine=none: the network's pose
 
     def relocalizer(self, device: torch.device) -> Relocalizer:
         return Relocalizer(self.backbone, self.index, self.search, self.query, device, self.refiner)
@@ -134,8 +134,12 @@ def method_label(cfg: DictConfig, choices: Mapping[str, str], query: QueryOption
     label = f"{choices['crop']} + {choices['index']}"
     if choices["index"] == "kmeans":
         label += f" (k={cfg.index.k})"
-    if query.retrieval_k > 0:
-        label = f"retrieval of {query.retrieval_k} nearest, {choices['crop']} crop"
+    refine = choices.get("refine", "none")
+    if refine == "retrieval":
+        # The crop search chooses the query's descriptor (the centre crop needs no
+        # index); the map images nearest to it answer the pose.
+        search = choices["crop"] if choices["crop"] == "centre" else label
+        label = f"retrieval of {int(cfg.refine.get('k', 1))} nearest, {search} crop"
     if query.scoring != "plain":
         label += f", {query.scoring} scoring"
     if query.rerank > 1:
@@ -150,8 +154,7 @@ def method_label(cfg: DictConfig, choices: Mapping[str, str], query: QueryOption
         # With random crops, dropout draws one mask per crop: the count is the crops'.
         sampled = (f" MC dropout{where}" if crops else f" x{samples} MC{where}") if samples else ""
         label = f"{choices['backbone']}{sampled}: {label}"
-    refine = choices.get("refine", "none")
-    if refine != "none":
+    if refine not in ("none", "retrieval"):
         label += f" + {refine}"
     return label
 
@@ -182,7 +185,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     refiner = None if refine == "none" else build(cfg, "refine", refine)
     # Before training: the trained model will have train.crop_scale.
     try:
-        check_options(query, backbone, index, settings.crop_scale)
+        check_options(query, backbone, index, settings.crop_scale, refiner)
     except ConfigError as error:
         raise in_query_terms(error) from error
     check_pretrained(cfg, choices, backbone)
@@ -192,7 +195,8 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
             for k, v in OmegaConf.to_container(cfg[group], resolve=True).items()
             if k != "_target_"
         }
-        for group in ("backbone", "index", "crop")
+        for group in ("backbone", "index", "crop", "refine")
+        if group != "refine" or refiner is not None
     }
     identity = {
         "dataset": dataset_settings(cfg),

@@ -5,6 +5,11 @@ Query options moved into `query.*`, task=localize's into `localize.*`, and so on
 work: each old key is rewritten to its new one before Hydra parses it, and one line on
 stderr says so. Only the key changes; the value (a multirun list such as
 `scoring=plain,shared` too) and the prefix (`+`, `++`, `~`) stay as written.
+
+An option that became something a key cannot follow is refused instead, in one line
+giving the new spelling: `query.retrieval_k=K` (and the older `retrieval_k=K`) is the
+refiner `refine=retrieval refine.k=K` since issue 22, two overrides where there was
+one, and `refine=` may already be set otherwise on the same line.
 """
 
 from __future__ import annotations
@@ -13,6 +18,8 @@ import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from relocfw.core.errors import ConfigError
+
 # Old top-level key -> new key; `model` depends on the task (see new_key).
 MOVED = {
     "query_batch_size": "query.batch_size",
@@ -20,7 +27,6 @@ MOVED = {
     "scoring": "query.scoring",
     "rerank": "query.rerank",
     "crop_samples": "query.crop_samples",
-    "retrieval_k": "query.retrieval_k",
     "images": "localize.images",
     "backend": "localize.backend",
     "baselines": "relocalize.baselines",
@@ -28,6 +34,8 @@ MOVED = {
 }
 MODEL_KEYS = {"localize": "localize.model", "export": "export.model"}
 OLD_KEYS = (*MOVED, "model")
+# Keys refused with their new spelling (see the module's docstring).
+REMOVED = ("retrieval_k", "query.retrieval_k")
 OVERRIDE = re.compile(r"(?P<prefix>~|\+\+|\+)?(?P<key>[A-Za-z_][\w.]*)(?P<rest>=.*)?", re.S)
 
 
@@ -69,12 +77,17 @@ def rewrite(overrides: Sequence[str], task: str | None = None) -> tuple[list[str
             (flags such as `-m`, `--help`) is kept as it is.
         task: the task they run, which decides where `model=` goes; None: their own
             `task=`, else relocalize.
+
+    Raises:
+        ConfigError: a REMOVED key, with its new spelling.
     """
     task = task_of(overrides) if task is None else task
     out: list[str] = []
     found: dict[str, Rewrite] = {}
     for override in overrides:
         match = OVERRIDE.fullmatch(override)
+        if match is not None and match["key"] in REMOVED:
+            refuse_removed(override, match)
         if match is None or match["key"] not in OLD_KEYS:
             out.append(override)
             continue
@@ -86,3 +99,19 @@ def rewrite(overrides: Sequence[str], task: str | None = None) -> tuple[list[str
         out.append(spelled)
         found[match["key"]] = Rewrite(match["key"], key, spelled)
     return out, list(found.values())
+
+
+def refuse_removed(override: str, match: re.Match[str]) -> None:
+    """ConfigError for a REMOVED key, saying what to write instead; a bare word (a
+    flag's argument) passes."""
+    if match["rest"] is None and match["prefix"] != "~":
+        return
+    value = (match["rest"] or "=")[1:].strip()
+    if value in ("", "0"):
+        instead = "drop it (refine=none, the default, answers with the network's pose)"
+    else:
+        instead = f"write refine=retrieval refine.k={value}"
+    raise ConfigError(
+        f"{override}: {match['key']} is no longer an option; the image-retrieval baseline "
+        f"is a refiner now: {instead}"
+    )

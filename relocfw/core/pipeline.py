@@ -1,13 +1,13 @@
 """Relocalizer: backbone + similarity index + crop search, the one pipeline for all methods.
 
-A query goes through five stages, each in a module of its own:
+A query goes through six stages, each in a module of its own:
 
     strip     the image scaled for the network          relocfw.core.imaging.Strip
     search    which square crop is closest to the map   CropSearch.propose, core.search_loop
     rerank    shared-scoring candidates re-scored       QueryWindows.rerank
     sample    the chosen crop's test-time samples       relocfw.core.sampled_answer
-    pose      the network's pose, or retrieval's        relocfw.core.retrieval
-    refine    the final pose (e.g. features + PnP)      PoseRefiner (relocfw.core.refinement)
+    pose      the network's pose of the chosen window   NetworkAnswers
+    refine    the final pose (retrieval, features)      PoseRefiner (relocfw.core.refinement)
 
 Every network pass and map lookup goes through one Scorer (relocfw.core.scorer); the
 options are one QueryOptions value (relocfw.core.query_options).
@@ -30,7 +30,6 @@ from relocfw.core.network_answers import NetworkAnswers
 from relocfw.core.query_options import QueryOptions
 from relocfw.core.query_windows import QueryWindows
 from relocfw.core.refinement import MapImage, PoseRefiner, RefineQuery
-from relocfw.core.retrieval import check_retrieval, retrieved_pose
 from relocfw.core.sampled_answer import sampled_answer, samples_answer
 from relocfw.core.sampling import configured_samples
 from relocfw.core.scorer import Scorer
@@ -38,28 +37,38 @@ from relocfw.core.search_loop import score_chosen_together, search_together
 from relocfw.core.values import Crop, Localization, Pose
 
 
-def check_sampling(retrieval_k: int, crop_samples: int, mc_samples: int, crop_scale: float) -> None:
+def check_sampling(
+    crop_samples: int, mc_samples: int, crop_scale: float, refiner: PoseRefiner | None = None
+) -> None:
     """Raise ConfigError for sampling options that cannot mean anything.
 
     `crop_scale` is the model's (train.crop_scale): at 1 the window fills the crop.
+    A refiner that replaces the network's pose (retrieval) would throw the samples'
+    mean away and answer with a pose their spread does not describe.
     """
     if crop_samples < 0:
         raise ConfigError(f"crop_samples must be >= 0, got {crop_samples}")
+    replaces = bool(getattr(refiner, "replaces_network_pose", False))
+    if replaces and (crop_samples > 0 or mc_samples > 0):
+        raise ConfigError(
+            f"the refiner {type(refiner).__name__} never answers with the network's pose, "
+            f"but query.crop_samples={crop_samples} / backbone.mc_samples={mc_samples} "
+            "sample that pose: use one or the other"
+        )
     if crop_samples > 0 and crop_scale <= 1.0:
         raise ConfigError(
             f"crop_samples={crop_samples} draws random windows inside the chosen crop, but "
             f"the model's crop_scale is {crop_scale:g}: the window fills the crop and every "
             "sample would be the same window (train with train.crop_scale > 1)"
         )
-    if retrieval_k > 0 and (crop_samples > 0 or mc_samples > 0):
-        raise ConfigError(
-            "retrieval_k > 0 answers with map images' poses, but crop_samples / "
-            "backbone.mc_samples sample the network's pose: use one or the other"
-        )
 
 
 def check_options(
-    options: QueryOptions, backbone: Backbone, index: SimilarityIndex, crop_scale: float
+    options: QueryOptions,
+    backbone: Backbone,
+    index: SimilarityIndex,
+    crop_scale: float,
+    refiner: PoseRefiner | None = None,
 ) -> None:
     """The checks of `options` that need the parts they run with (ConfigError)."""
     if options.scoring == "shared" and not backbone.shares_strip:
@@ -67,10 +76,7 @@ def check_options(
             f"scoring=shared needs a backbone with feature_maps and describe_pooled; "
             f"{type(backbone).__name__} lacks them (use scoring=plain)"
         )
-    check_retrieval(index, options.retrieval_k)
-    check_sampling(
-        options.retrieval_k, options.crop_samples, configured_samples(backbone), crop_scale
-    )
+    check_sampling(options.crop_samples, configured_samples(backbone), crop_scale, refiner)
 
 
 class Relocalizer:
@@ -85,8 +91,9 @@ class Relocalizer:
         search: the crop search strategy.
         options: how a query is localized (relocfw.core.query_options.QueryOptions).
         device: where the network runs.
-        refiner: the last stage (relocfw.core.refinement.PoseRefiner), e.g. local
-            features + PnP; None: the network's pose (or retrieval's) is the answer.
+        refiner: the last stage (relocfw.core.refinement.PoseRefiner), e.g. the
+            nearest map images' poses (retrieval) or local features + PnP; None: the
+            network's pose is the answer.
 
     Candidate crops and the map are always scored by the dropout-free network; only
     the chosen crop is sampled (backbone.mc_samples, options.crop_samples), once.
@@ -115,7 +122,7 @@ class Relocalizer:
         if not isinstance(options, QueryOptions):
             raise ConfigError(f"options must be a QueryOptions, got {type(options).__name__}")
         self.scorer = Scorer(backbone, index, device, options.batch_size)
-        check_options(options, backbone, index, self.scorer.crop_scale)
+        check_options(options, backbone, index, self.scorer.crop_scale, refiner)
         self.options = options
         self.search = search
         self.refiner = refiner
@@ -179,8 +186,8 @@ class Relocalizer:
         quiet: bool = True,
         frames: Sequence[object] | None = None,
     ) -> np.ndarray:
-        """Build the map from training images (and their poses, for retrieval and the
-        refiner).
+        """Build the map from training images (and their poses, for the refiner and
+        model files).
 
         Args:
             frames: per image, what the refiner may use of it: objects with `name`,
@@ -192,12 +199,12 @@ class Relocalizer:
 
         Raises:
             DataError: an image is not H x W x 3 uint8 RGB (naming its index), or
-                retrieval or the refiner lacks poses, or a per-image list is short.
+                the refiner lacks poses, or a per-image list is short.
         """
-        needs_poses = self.options.retrieval_k > 0 or self.refiner is not None
+        needs_poses = self.refiner is not None
         if needs_poses and (poses is None or len(poses) != len(images)):
             raise DataError(
-                "retrieval and refinement need the pose of every map image: fit(images, poses)"
+                "refinement (e.g. retrieval) needs the pose of every map image: fit(images, poses)"
             )
         features = self.describe(images, quiet=quiet)
         self.index.fit(features)
@@ -263,11 +270,8 @@ class Relocalizer:
         )
 
     def pose_of(self, answer: NetworkAnswers) -> Pose:
-        """The pose answered for one window: the network's, or retrieval's."""
-        if self.options.retrieval_k > 0:
-            return retrieved_pose(
-                self.scorer, self.map_poses, answer.features, self.options.retrieval_k
-            )
+        """The network's pose for one window: what the refiner starts from (and the
+        answer without one). The crop-premise diagnostic scores every window by it."""
         return Pose(answer.positions, answer.quaternions)
 
     def localize_many(

@@ -2,9 +2,13 @@
 
 What a model file stores besides its plugins, what `task=localize` overrides key by
 key (`query.*=null` keeps the file's value), and what `Relocalizer` reads. Checks that
-need only the options run once, here; those that need the backbone or the index
-(shared scoring needs a backbone with feature maps, retrieval an index that names its
-neighbours) run when a Relocalizer is built (relocfw.core.pipeline.check_options).
+need only the options run once, here; those that need the backbone or the refiner
+(shared scoring needs a backbone with feature maps; sampling cannot go with a refiner
+that replaces the network's pose) run when a Relocalizer is built
+(relocfw.core.pipeline.check_options).
+
+The image-retrieval baseline was the option `retrieval_k` before issue 22; it is the
+refiner `refine=retrieval` now (relocfw.plugins.retrieval_refiner.RetrievalRefiner).
 """
 
 from __future__ import annotations
@@ -18,6 +22,12 @@ from relocfw.core.errors import ConfigError
 from relocfw.core.options import integer_at_least
 
 SCORINGS = ("plain", "shared")
+# Options that left QueryOptions, and where they went (one clear refusal, not "unknown").
+MOVED_OUT = {
+    "retrieval_k": "the retrieval baseline is a refiner now: refine=retrieval refine.k=K "
+    "(in Python: Relocalizer(..., refiner=RetrievalRefiner(k=K)), "
+    "relocfw.plugins.retrieval_refiner)",
+}
 
 
 @dataclass(frozen=True)
@@ -40,10 +50,6 @@ class QueryOptions:
             backbone's Monte Carlo dropout on, each window gets its own mask. Needs a
             model trained with crop_scale > 1 (else every window is the same).
         sample_seed: seeds the samples, mixed with each query image's fingerprint.
-        retrieval_k: 0 answers with the network's pose (PoseNet and the paper). k > 0
-            answers with the distance-weighted mean pose of the k map images nearest to
-            the chosen crop's descriptor: the image-retrieval baseline. Needs an index
-            with `neighbours` (index=exhaustive) and the map images' poses.
         queries_at_once: how many queries of a list (`localize_many`, a test split)
             are searched together, their windows in merged forward passes; the answers
             are the same. 1: one at a time, so each query's `seconds` is its latency.
@@ -57,7 +63,6 @@ class QueryOptions:
     rerank: int = 1
     crop_samples: int = 0
     sample_seed: int = 0
-    retrieval_k: int = 0
     queries_at_once: int = 1
 
     def __post_init__(self) -> None:
@@ -67,7 +72,6 @@ class QueryOptions:
             ("rerank", 1),
             ("crop_samples", 0),
             ("sample_seed", 0),
-            ("retrieval_k", 0),
             ("queries_at_once", 1),
         ):
             object.__setattr__(self, name, integer_at_least(name, getattr(self, name), least))
@@ -96,6 +100,10 @@ class QueryOptions:
             ConfigError: an unknown key (named with `where`), or a bad value.
         """
         known = {field.name for field in dataclasses.fields(cls)}
+        moved = sorted(set(values) & set(MOVED_OUT))
+        if moved:
+            name = moved[0]
+            raise ConfigError(f"{where}: {name} is no longer a query option; {MOVED_OUT[name]}")
         unknown = sorted(set(values) - known)
         if unknown:
             raise ConfigError(

@@ -9,8 +9,10 @@ keyframes of the map and an absolute pose solved from them (relocfw.plugins
 do better (too few inliers) answers the network's pose and says it fell back, so a
 report can count it and a robot can distrust it.
 
-Without a refiner (`Relocalizer(refiner=None)`, `refine=none`) the network's pose, or
-retrieval's with `retrieval_k`, is the answer, as before this stage existed.
+Without a refiner (`Relocalizer(refiner=None)`, `refine=none`) the network's pose is
+the answer, as before this stage existed. The image-retrieval baseline is a refiner too
+(relocfw.plugins.retrieval_refiner, `refine=retrieval`): it answers with the poses of
+the map images nearest to the chosen crop's descriptor.
 """
 
 from __future__ import annotations
@@ -19,8 +21,10 @@ from abc import ABC, abstractmethod
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import numpy as np
+import torch
 
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.values import Pose
@@ -98,6 +102,12 @@ class PoseRefiner(ABC):
         ...         return Refined(query.network_pose)
     """
 
+    # True for a refiner whose answer never uses the network's pose (retrieval answers
+    # with map images' poses). Sampling the network's pose (query.crop_samples,
+    # backbone.mc_samples) would then be wasted work whose spread describes a pose
+    # nobody answers with, so the pipeline refuses that combination.
+    replaces_network_pose: ClassVar[bool] = False
+
     @abstractmethod
     def fit(self, views: Sequence[MapImage], descriptors: np.ndarray, quiet: bool = True) -> None:
         """Learn the map.
@@ -111,3 +121,31 @@ class PoseRefiner(ABC):
     @abstractmethod
     def refine(self, query: RefineQuery) -> Refined:
         """The final pose of one query."""
+
+    def check_map(self, frames: Sequence[object]) -> None:  # noqa: B027 - optional hook
+        """Raise ConfigError if this refiner cannot use these map images.
+
+        Called with the training split's frames (relocfw.data.frames.Frame: `name`,
+        `camera`, `depth_path`, ...) before training, so a map the refiner cannot use
+        (e.g. no camera intrinsics) fails in a second rather than after the model is
+        trained. The default accepts any map.
+        """
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The fitted refiner as tensors, for model files; optional for plugins.
+
+        A refiner without it is left out of a model file (whose model then answers
+        with the network's pose): e.g. refine=features, whose map structure is built
+        from the map images, which a model file does not hold.
+        """
+        raise NotImplementedError(f"{type(self).__name__} cannot be saved in a model file")
+
+    def load_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore what `state` returned: the refiner is then fitted."""
+        raise NotImplementedError(f"{type(self).__name__} cannot be loaded from a model file")
+
+    @property
+    def saves_state(self) -> bool:
+        """True when the refiner defines `state` and `load_state` (model files keep it)."""
+        cls = type(self)
+        return cls.state is not PoseRefiner.state and cls.load_state is not PoseRefiner.load_state

@@ -1,4 +1,4 @@
-"""One self-describing model file: network, map, crop search and dataset metadata.
+"""One self-describing model file: network, map, crop search, refiner and dataset metadata.
 
 Everything needed to localize new images, loaded without Hydra or the training data:
 each part is stored as the import path of its class, the options it was built with
@@ -26,23 +26,29 @@ from relocfw.core.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.plugin_registry import registered_targets
 from relocfw.core.query_options import QueryOptions
+from relocfw.core.refinement import PoseRefiner
 from relocfw.core.values import Pose
 from relocfw.model.checkpoints import read_torch_file, save_atomic
+from relocfw.model.older_formats import stored_options
 
 # 2: input normalisation and training crop_scale saved in the state; 3: every query
-# option as one QueryOptions mapping ("query"). Format 2 files are still read.
-MODEL_FORMAT = 3
-READABLE_FORMATS = (2, 3)
-# What format 2 stored of the query options, each at the top level.
-FORMAT_2_QUERY_KEYS = ("retrieval_k", "crop_samples", "sample_seed", "rerank")
+# option as one QueryOptions mapping ("query"); 4: the refiner ("refine", where it can be
+# stored), and retrieval is a refiner, no longer the query option retrieval_k. Format 2
+# and 3 files are still read (their retrieval_k as refine=retrieval). A format 3 reader
+# must refuse format 4: it would read a retrieval model as the network's pose.
+MODEL_FORMAT = 4
+READABLE_FORMATS = (2, 3, 4)
 MODEL_KIND = "relocfw-model"
 # The parts of a model file: the config group that registers their classes, and the
-# interface the class must implement.
+# interface the class must implement. Every file has the first three; "refine" only
+# where the model has a refiner that can be stored (PoseRefiner.saves_state).
 PART_INTERFACES: dict[str, type] = {
     "backbone": Backbone,
     "index": SimilarityIndex,
     "crop": CropSearch,
+    "refine": PoseRefiner,
 }
+REQUIRED_PARTS = ("backbone", "index", "crop")
 
 
 def class_path(obj: object) -> str:
@@ -129,14 +135,17 @@ def save_model(
 ) -> Path:
     """Write `relocalizer` (fitted) to `path`, atomically.
 
-    The file holds the network, the map, the crop search and the query options; a
-    refiner (relocfw.core.refinement) is not stored yet: its map structure is cached
-    apart (refine=features), and a loaded model answers with the network's pose.
+    The file holds the network, the map, the crop search, the query options and the
+    refiner where it can be stored (`PoseRefiner.saves_state`: refine=retrieval). A
+    refiner that cannot (refine=features, whose map structure is built from the map
+    images, which the file does not hold) is left out: see `stores_refiner`; the loaded
+    model then answers with the network's pose.
 
     Args:
         path: the model file to write.
         relocalizer: a fitted Relocalizer.
-        options: constructor options of "backbone", "index" and "crop".
+        options: constructor options of "backbone", "index", "crop" and "refine" (the
+            refiner's; a stored refiner is rebuilt with them, so give them as built).
         metadata: plain values describing the data (dataset settings, sizes, names).
 
     Raises:
@@ -147,6 +156,8 @@ def save_model(
         "index": relocalizer.index,
         "crop": relocalizer.search,
     }
+    if stores_refiner(relocalizer):
+        parts["refine"] = relocalizer.refiner
     payload: dict[str, Any] = {
         "kind": MODEL_KIND,
         "format": MODEL_FORMAT,
@@ -162,6 +173,8 @@ def save_model(
         k: v.detach().cpu() for k, v in relocalizer.backbone.state_dict().items()
     }
     payload["index"]["state"] = relocalizer.index.state()
+    if "refine" in parts:
+        payload["refine"]["state"] = relocalizer.refiner.state()
     if relocalizer.map_poses:
         payload["map_poses"] = torch.tensor(
             [[*p.position, *p.quaternion] for p in relocalizer.map_poses], dtype=torch.float64
@@ -170,14 +183,11 @@ def save_model(
     return Path(path)
 
 
-def stored_options(payload: dict[str, Any], path: Path) -> dict[str, Any]:
-    """The query options a model file stores, as a mapping (format 2: its four keys)."""
-    if payload.get("format") == 2:
-        return {key: payload[key] for key in FORMAT_2_QUERY_KEYS if key in payload}
-    query = payload.get("query")
-    if not isinstance(query, dict):
-        raise DataError(f"{path}: damaged model file (query options are not a mapping)")
-    return query
+def stores_refiner(relocalizer: Relocalizer) -> bool:
+    """True when `save_model` stores the relocalizer's refiner; False without one, or
+    for one without `state` / `load_state` (the caller may say it was left out)."""
+    refiner = relocalizer.refiner
+    return refiner is not None and bool(getattr(refiner, "saves_state", False))
 
 
 def load_model(
@@ -210,12 +220,14 @@ def load_model(
     if payload.get("format") not in READABLE_FORMATS:
         raise DataError(
             f"{path} is model format {payload.get('format')}; this relocfw reads formats "
-            f"{' and '.join(map(str, READABLE_FORMATS))}: run `relocfw task=relocalize` "
+            f"{', '.join(map(str, READABLE_FORMATS))}: run `relocfw task=relocalize` "
             "again with this version to write a new one"
         )
+    stored = stored_options(payload, path)  # formats 2 and 3: retrieval_k -> "refine"
     # Every class is checked before any part is built: a refused crop class must not
     # leave a half-built backbone behind, nor follow work done for it.
-    classes = {group: plugin_class(payload, group, path) for group in PART_INTERFACES}
+    groups = [g for g in PART_INTERFACES if g in REQUIRED_PARTS or g in payload]
+    classes = {group: plugin_class(payload, group, path) for group in groups}
     try:
         options = {**payload["backbone"]["options"], **classes["backbone"].rebuild_overrides}
         backbone = classes["backbone"](**options)
@@ -223,9 +235,9 @@ def load_model(
         index = classes["index"](**payload["index"]["options"])
         index.load_state(payload["index"]["state"])
         crop = classes["crop"](**payload["crop"]["options"])
+        refiner = stored_refiner(payload, classes, path)
     except (KeyError, TypeError, RuntimeError) as error:
         raise DataError(f"{path}: damaged or incompatible model file ({error})") from error
-    stored = dict(stored_options(payload, path))
     given = {k: v for k, v in dict(overrides or {}).items() if v is not None}
 
     def settled(values: dict[str, Any]) -> dict[str, Any]:
@@ -240,8 +252,23 @@ def load_model(
     except ConfigError as error:
         raise DataError(f"damaged model file: {error}") from error
     options = QueryOptions.from_mapping(settled({**stored, **given}), where="query")
-    relocalizer = Relocalizer(backbone, index, crop, options, device)
+    relocalizer = Relocalizer(backbone, index, crop, options, device, refiner)
     if "map_poses" in payload:
         relocalizer.map_poses = [Pose(row[:3], row[3:]) for row in payload["map_poses"].numpy()]
     relocalizer.metadata = payload["metadata"]
     return relocalizer
+
+
+def stored_refiner(
+    payload: dict[str, Any], classes: dict[str, type], path: Path
+) -> PoseRefiner | None:
+    """The file's refiner, rebuilt and given its state (fitted); None without one."""
+    if "refine" not in classes:
+        return None
+    part = payload["refine"]
+    try:
+        refiner = classes["refine"](**part["options"])
+        refiner.load_state(part["state"])
+    except (ConfigError, DataError) as error:
+        raise DataError(f"{path}: damaged model file (refine: {error})") from error
+    return refiner

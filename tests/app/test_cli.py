@@ -15,6 +15,7 @@ import yaml
 from relocfw.app import cli
 from relocfw.app.config_schema import Task
 from relocfw.app.spellings import rewrite
+from relocfw.core.errors import ConfigError
 from tests.cli_runs import relocfw, relocfw_here
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
 
@@ -163,7 +164,13 @@ def test_compare_of_the_dropout_variants(tmp_path, cache):
         (["task=nosuch"], "task=nosuch: Invalid value 'nosuch', expected one of [relocalize,"),
         (["device=cuda:7"], "device"),
         (["task=compare", "compare.reference=Nobody"], "compare.reference"),
-        (["query.retrieval_k=1"], "query.retrieval_k=1 needs an index that returns neighbours"),
+        # refine=retrieval: sampling the network's pose is refused, whatever the index.
+        (
+            ["refine=retrieval", "backbone.mc_samples=4"],
+            "the refiner RetrievalRefiner never answers with the network's pose, but "
+            "query.crop_samples=0 / backbone.mc_samples=4 sample that pose",
+        ),
+        (["refine=retrieval", "refine.k=0"], "refine=retrieval: refine.k must be at least 1"),
         (["index=faiss", "index.kind=lsh"], "index.kind must be one of flat, ivf, hnsw"),
         (["index=faiss", "index.kind=ivf"], "nlist=1024 is more IVF cells than map"),
         (["preset=paper"], "preset=paper fine-tunes ImageNet weights (train.lr=1e-05)"),
@@ -235,7 +242,7 @@ def test_an_old_multirun_list_is_read_in_the_new_spelling(tmp_path):
     [
         (["scoring=shared"], None, ["query.scoring=shared"]),
         (["+crop_samples=4", "~rerank"], None, ["+query.crop_samples=4", "~query.rerank"]),
-        (["retrieval_k=1,5", "x=1"], None, ["query.retrieval_k=1,5", "x=1"]),
+        (["queries_at_once=1,5", "x=1"], None, ["query.queries_at_once=1,5", "x=1"]),
         (["task=export", "model=m.relocfw"], None, ["task=export", "export.model=m.relocfw"]),
         (["model=m.relocfw", "task=localize"], None, ["localize.model=m.relocfw", "task=localize"]),
         (["model=m"], "export", ["export.model=m"]),
@@ -262,7 +269,6 @@ def test_a_users_old_methods_file_still_works(tmp_path):
     folder.mkdir(parents=True)
     (folder / "old.yaml").write_text(
         "# @package compare.methods\n"
-        "Retrieval: [crop=centre, index=exhaustive, retrieval_k=1]\n"
         "Shared: [crop=ga, scoring=shared, rerank=2]\n"
         "Shared again: [crop=sweep, scoring=shared]\n"
     )
@@ -276,12 +282,58 @@ def test_a_users_old_methods_file_still_works(tmp_path):
     result = relocfw_here(args, tmp_path)
     assert result.returncode == 2
     assert result.stderr.splitlines() == [
-        "note: retrieval_k= is now query.retrieval_k= "
-        "(compare.methods.Retrieval: read as query.retrieval_k=1)",
         "note: scoring= is now query.scoring= "
         "(compare.methods.Shared: read as query.scoring=shared)",
         "note: rerank= is now query.rerank= (compare.methods.Shared: read as query.rerank=2)",
         "error: compare.reference='Nobody' is not in compare.methods",
+    ]
+
+
+@pytest.mark.parametrize(
+    "old, k",
+    [
+        (["query.retrieval_k=3"], "3"),
+        (["retrieval_k=2"], "2"),  # the spelling before issue 21
+        (["+query.retrieval_k=1,5"], "1,5"),
+    ],
+)
+def test_retrieval_k_ends_in_one_line_giving_the_new_spelling(tmp_path, old, k):
+    """The retrieval baseline is refine=retrieval since issue 22: one override became
+    two, so the old key is refused with the new spelling rather than rewritten."""
+    result = relocfw_here([*TINY_OVERRIDES, *old], tmp_path)
+    assert result.returncode == 2
+    (line,) = result.stderr.splitlines()
+    key = old[0].lstrip("+").split("=")[0]
+    assert line == (
+        f"error: {old[0]}: {key} is no longer an option; the image-retrieval baseline is "
+        f"a refiner now: write refine=retrieval refine.k={k}"
+    )
+    assert result.stdout == ""
+    assert not (tmp_path / "outputs").exists()  # refused before Hydra ran
+
+
+def test_retrieval_k_0_is_refused_with_what_it_meant():
+    with pytest.raises(ConfigError, match="drop it \\(refine=none, the default"):
+        rewrite(["query.retrieval_k=0"])
+
+
+def test_an_old_methods_row_with_retrieval_k_names_the_row(tmp_path):
+    folder = tmp_path / "mine" / "methods"
+    folder.mkdir(parents=True)
+    (folder / "old.yaml").write_text(
+        "# @package compare.methods\nRetrieval: [crop=centre, index=exhaustive, retrieval_k=1]\n"
+    )
+    args = [
+        *TINY_OVERRIDES,
+        "task=compare",
+        "methods=old",
+        f"hydra.searchpath=[file://{tmp_path / 'mine'}]",
+    ]
+    result = relocfw_here(args, tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.splitlines() == [
+        "error: compare.methods.Retrieval: retrieval_k=1: retrieval_k is no longer an option; "
+        "the image-retrieval baseline is a refiner now: write refine=retrieval refine.k=1"
     ]
 
 

@@ -1,12 +1,19 @@
-"""refine=features end to end: the structure rows of task=compare, and their refusals."""
+"""refine=features and refine=retrieval end to end: the structure rows of task=compare,
+the retrieval refiner in a model file, and their refusals."""
 
 from __future__ import annotations
 
+import csv
 import json
 import shutil
 
+import numpy as np
 import pytest
 
+from relocfw import load_model
+from relocfw.data.frames import read_images
+from relocfw.data.sevenscenes import load_sevenscenes
+from relocfw.plugins.retrieval_refiner import RetrievalRefiner
 from tests.cli_runs import relocfw, relocfw_here
 from tests.conftest import TINY_MODEL
 from tests.data.formats import write_folder
@@ -63,3 +70,35 @@ def test_map_images_without_depth_are_named_not_dropped(tiny_scene, tmp_path):
     assert "1 of 16 map images give the refiner no 3-D point (first: seq-01/frame-000002" in (
         result.stderr
     )
+
+
+def test_refine_retrieval_runs_with_k_means_and_is_stored_in_the_model_file(tiny_scene, tmp_path):
+    """refine=retrieval beside index=kmeans (no exhaustive index needed), its k in the
+    row's name, stored in the model file: the loaded model answers as the run did."""
+    root = tmp_path / "data"
+    shutil.copytree(tiny_scene, root / "room")
+    run_dir = tmp_path / "run"
+    args = [*TINY_MODEL, "dataset=sevenscenes", f"dataset.root={root}", "dataset.scene=room"]
+    args += ["crop=centre", "index=kmeans", "refine=retrieval", "refine.k=2"]
+    result = relocfw([*args, f"hydra.run.dir={run_dir}"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "cannot be stored in a model file" not in result.stdout
+    summary = {s["method"]: s for s in json.loads((run_dir / "summary.json").read_text())}
+    row = summary["retrieval of 2 nearest, centre crop"]
+    # Never fallen back; its confidence is minus a descriptor distance.
+    assert row["refine_fell_back"] == 0 and row["refine_median_confidence"] <= 0
+    assert "posenet (centre crop)" in summary  # the network's own pose beside it
+    loaded = load_model(run_dir / "model.relocfw")
+    assert isinstance(loaded.refiner, RetrievalRefiner) and loaded.refiner.k == 2
+    frames = load_sevenscenes(root / "room", None, "test")
+    answers = loaded.localize_many(read_images(frames, quiet=True))
+    with open(run_dir / "results.csv") as stream:
+        rows = [
+            r
+            for r in csv.DictReader(stream)
+            if r["method"] == "retrieval of 2 nearest, centre crop"
+        ]
+    assert [r["frame"] for r in rows] == [f.name for f in frames]
+    for answer, written in zip(answers, rows, strict=True):
+        position = [float(written[f"est_{axis}"]) for axis in "xyz"]
+        assert np.allclose(answer.pose.position, position, atol=2e-6)

@@ -46,6 +46,7 @@ def relocalizer_for(case: str):
     from relocfw.plugins.ga_crop import GeneticCropSearch
     from relocfw.plugins.kmeans_index import KMeansIndex
     from relocfw.plugins.posenet import PoseNet
+    from relocfw.plugins.retrieval_refiner import RetrievalRefiner
     from relocfw.plugins.sweep_crop import SweepCrop
 
     torch.manual_seed(0)
@@ -68,9 +69,12 @@ def relocalizer_for(case: str):
         "ga_shared": {"scoring": "shared"},
         "ga_shared_rerank": {"scoring": "shared", "rerank": 3},
         "mc_sampling": {"crop_samples": 5, "sample_seed": 2},
-        "retrieval": {"retrieval_k": 2},
     }.get(case, {})
-    return Relocalizer(backbone, index, search, QueryOptions(batch_size=8, **options))
+    # Recorded as the query option retrieval_k=2; the refiner since issue 22 (same poses).
+    refiner = RetrievalRefiner(k=2) if case == "retrieval" else None
+    return Relocalizer(
+        backbone, index, search, QueryOptions(batch_size=8, **options), refiner=refiner
+    )
 
 
 def answers(case: str, cache: Path) -> list[dict]:

@@ -15,6 +15,7 @@ from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.retrieval_refiner import RetrievalRefiner
 
 
 class SamplesSeen(PoseNet):
@@ -148,8 +149,9 @@ def test_random_windows_stay_inside_the_chosen_crop():
 def test_impossible_sampling_options_are_refused():
     with pytest.raises(ConfigError, match="crop_samples must be at least 0, got -1"):
         Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), QueryOptions(crop_samples=-1))
-    with pytest.raises(ConfigError, match="retrieval_k > 0 answers with map images' poses"):
-        Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), QueryOptions(retrieval_k=1))
+    # refine=retrieval answers with map images' poses: sampling the network's is refused.
+    with pytest.raises(ConfigError, match="backbone.mc_samples=8 sample that pose"):
+        Relocalizer(SamplesSeen(), ExhaustiveIndex(), CentreCrop(), refiner=RetrievalRefiner())
 
 
 def test_crop_sampling_is_refused_for_a_model_whose_window_fills_the_crop():

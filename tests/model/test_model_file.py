@@ -4,14 +4,15 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import QueryOptions, Relocalizer
+from relocfw import ConfigError, DataError, PoseRefiner, QueryOptions, Refined, Relocalizer
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.model.model_file import MODEL_FORMAT, load_model, save_model
+from relocfw.model.model_file import MODEL_FORMAT, load_model, save_model, stores_refiner
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.retrieval_refiner import RetrievalRefiner
 from relocfw.plugins.sweep_crop import SweepCrop
 
 
@@ -59,16 +60,26 @@ def assert_same_answers(got, expected):
 def test_retrieval_model_round_trip_answers_with_the_same_map_poses(scene, tmp_path):
     frames, train, test = scene
     backbone, options = tiny_backbone()
-    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), QueryOptions(retrieval_k=2))
+    # refine=retrieval beside k-means: retrieval needs no exhaustive index.
+    refiner = RetrievalRefiner(k=2)
+    relocalizer = Relocalizer(backbone, KMeansIndex(k=3), SweepCrop(), refiner=refiner)
     relocalizer.fit(train, [f.pose for f in frames])
-    loaded = round_trip(relocalizer, {"backbone": options}, tmp_path)
-    assert loaded.options.retrieval_k == 2
+    assert stores_refiner(relocalizer)
+    parts = {"backbone": options, "index": {"k": 3}, "refine": {"k": 2}}
+    loaded = round_trip(relocalizer, parts, tmp_path)
+    assert isinstance(loaded.refiner, RetrievalRefiner) and loaded.refiner.k == 2
+    assert loaded.refiner is not refiner
+    payload = torch.load(tmp_path / "model.relocfw", weights_only=True)
+    assert payload["refine"]["class"] == "relocfw.plugins.retrieval_refiner.RetrievalRefiner"
+    assert payload["refine"]["options"] == {"k": 2}
     assert len(loaded.map_poses) == len(frames)
     for saved, original in zip(loaded.map_poses, frames, strict=True):
         assert np.allclose(saved.position, original.pose.position, rtol=0, atol=1e-12)
         assert np.allclose(saved.quaternion, original.pose.quaternion, rtol=0, atol=1e-12)
     expected = answers(relocalizer, test)
     assert_same_answers(answers(loaded, test), expected)
+    for a, b in zip(answers(loaded, test), expected, strict=True):
+        assert a.refine_confidence == b.refine_confidence < 0 and not a.fell_back
     # Retrieval really answered: the network's own pose of the same crop is elsewhere.
     network = Relocalizer(backbone, relocalizer.index, SweepCrop())
     own = answers(network, test)
@@ -76,6 +87,27 @@ def test_retrieval_model_round_trip_answers_with_the_same_map_poses(scene, tmp_p
         not np.allclose(a.pose.position, b.pose.position)
         for a, b in zip(expected, own, strict=True)
     )
+
+
+class Unstorable(PoseRefiner):
+    """A refiner without state(): model files leave it out, as they do refine=features."""
+
+    def fit(self, views, descriptors, quiet=True):
+        pass
+
+    def refine(self, query):
+        return Refined(query.network_pose)
+
+
+def test_a_refiner_without_state_is_left_out_of_the_model_file(scene, tmp_path):
+    frames, train, _ = scene
+    backbone, options = tiny_backbone()
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop(), refiner=Unstorable())
+    relocalizer.fit(train, [f.pose for f in frames])
+    assert not stores_refiner(relocalizer)
+    loaded = round_trip(relocalizer, {"backbone": options}, tmp_path)
+    assert loaded.refiner is None
+    assert "refine" not in torch.load(tmp_path / "model.relocfw", weights_only=True)
 
 
 def test_mc_sampling_model_round_trip_gives_the_same_poses_and_spreads(scene, tmp_path):
@@ -107,23 +139,25 @@ def test_a_model_trained_on_posenet_crops_is_loaded_with_its_crop_scale(scene, t
     assert_same_answers(answers(loaded, test_images), expected)
 
 
-# Every QueryOptions field away from its default, over two models (retrieval cannot
-# be combined with sampling): a model file must give each of them back.
+# Every QueryOptions field away from its default, over two models (refine=retrieval
+# cannot be combined with sampling): a model file must give each of them back.
 STORED_OPTIONS = {
     "sampling": QueryOptions(
         batch_size=7, scoring="shared", rerank=3, crop_samples=3, sample_seed=5, queries_at_once=3
     ),
-    "retrieval": QueryOptions(batch_size=5, retrieval_k=2, queries_at_once=2),
+    "retrieval": QueryOptions(batch_size=5, queries_at_once=2),
 }
 
 
-def fitted_with(options: QueryOptions, scene) -> tuple[Relocalizer, dict]:
+def fitted_with(options: QueryOptions, scene, k: int = 0) -> tuple[Relocalizer, dict]:
+    """A model with `options`, and refine=retrieval refine.k=k when k > 0."""
     frames, train, _ = scene
     backbone, backbone_options = tiny_backbone()
     backbone.set_crop_scale(1.5)  # crop sampling needs windows smaller than the crop
-    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), options)
+    refiner = RetrievalRefiner(k) if k > 0 else None
+    relocalizer = Relocalizer(backbone, ExhaustiveIndex(), SweepCrop(), options, refiner=refiner)
     relocalizer.fit(train, [f.pose for f in frames])
-    return relocalizer, {"backbone": backbone_options}
+    return relocalizer, {"backbone": backbone_options, "refine": {"k": k}}
 
 
 @pytest.mark.parametrize("name", STORED_OPTIONS)
@@ -137,11 +171,12 @@ def test_format_3_stores_and_gives_back_every_query_option(scene, tmp_path, name
     }
     assert changed_somewhere == set(defaults)  # no field is tested at its default only
     options = STORED_OPTIONS[name]
-    relocalizer, parts = fitted_with(options, scene)
+    relocalizer, parts = fitted_with(options, scene, k=2 if name == "retrieval" else 0)
     path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
     payload = torch.load(path, weights_only=True)
-    assert payload["format"] == MODEL_FORMAT == 3
+    assert payload["format"] == MODEL_FORMAT == 4
     assert payload["query"] == options.as_dict()
+    assert ("refine" in payload) == (name == "retrieval")
     loaded = load_model(path)
     assert loaded.options == options
     assert_same_answers(answers(loaded, scene[2]), answers(relocalizer, scene[2]))
@@ -152,11 +187,23 @@ def test_format_3_stores_and_gives_back_every_query_option(scene, tmp_path, name
 
 def as_format_2(path, tmp_path, **stored) -> object:
     """The model file at `path` rewritten as format 2 wrote it: the query options it
-    knew at the top level, no "query" mapping."""
+    knew at the top level, no "query" mapping, no refiner."""
     payload = torch.load(path, weights_only=True)
     del payload["query"]
+    payload.pop("refine", None)
     payload.update(format=2, **stored)
     old = tmp_path / "format2.relocfw"
+    torch.save(payload, old)
+    return old
+
+
+def as_format_3(path, tmp_path, retrieval_k: int) -> object:
+    """The model file at `path` rewritten as format 3 wrote it: retrieval as the query
+    option retrieval_k, no refiner."""
+    payload = torch.load(path, weights_only=True)
+    payload.pop("refine", None)
+    payload.update(format=3, query={**payload["query"], "retrieval_k": retrieval_k})
+    old = tmp_path / "format3.relocfw"
     torch.save(payload, old)
     return old
 
@@ -170,18 +217,57 @@ def as_format_2(path, tmp_path, **stored) -> object:
     ids=["retrieval", "sampling"],
 )
 def test_a_format_2_model_file_still_loads_with_its_query_options(scene, tmp_path, stored):
-    rerank = stored["rerank"]
+    rerank, k = stored["rerank"], stored["retrieval_k"]
     # The options format 2 stored, with plain scoring (which it did not store): a
-    # re-ranking count only means something when shared scoring is asked for.
-    expected = QueryOptions(**{**stored, "rerank": 1})
-    relocalizer, parts = fitted_with(expected, scene)
+    # re-ranking count only means something when shared scoring is asked for. Its
+    # retrieval_k is refine=retrieval refine.k=retrieval_k.
+    query = {key: value for key, value in stored.items() if key != "retrieval_k"}
+    expected = QueryOptions(**{**query, "rerank": 1})
+    relocalizer, parts = fitted_with(expected, scene, k)
     path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
     old = as_format_2(path, tmp_path, **stored)
     loaded = load_model(old)
     assert loaded.options == expected
+    if k:
+        assert isinstance(loaded.refiner, RetrievalRefiner) and loaded.refiner.k == k
+    else:
+        assert loaded.refiner is None
     assert loaded.metadata == {"scene": "tiny"}
     assert len(loaded.map_poses) == len(scene[0])
     assert_same_answers(answers(loaded, scene[2]), answers(relocalizer, scene[2]))
     # With shared scoring asked for, the stored re-ranking count comes back too.
     shared = load_model(old, overrides={"scoring": "shared"})
     assert shared.options == expected.replace(scoring="shared", rerank=rerank)
+
+
+@pytest.mark.parametrize("k", [0, 1, 3])
+def test_a_format_3_model_file_with_retrieval_k_loads_as_refine_retrieval(scene, tmp_path, k):
+    options = QueryOptions(batch_size=5)
+    relocalizer, parts = fitted_with(options, scene, k)
+    path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
+    loaded = load_model(as_format_3(path, tmp_path, k))
+    assert loaded.options == options
+    if k == 0:
+        assert loaded.refiner is None
+        return
+    assert isinstance(loaded.refiner, RetrievalRefiner) and loaded.refiner.k == k
+    # Rebuilt from the index's z-scored descriptors and the map poses: the same answers.
+    assert_same_answers(answers(loaded, scene[2]), answers(relocalizer, scene[2]))
+
+
+def test_an_old_retrieval_model_file_without_map_poses_is_one_data_error(scene, tmp_path):
+    relocalizer, parts = fitted_with(QueryOptions(), scene, 1)
+    path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
+    old = as_format_3(path, tmp_path, 2)
+    payload = torch.load(old, weights_only=True)
+    del payload["map_poses"]
+    torch.save(payload, old)
+    with pytest.raises(DataError, match=r"damaged model file \(retrieval_k=2 but no map poses"):
+        load_model(old)
+
+
+def test_retrieval_k_is_refused_as_an_override_with_the_new_spelling(scene, tmp_path):
+    relocalizer, parts = fitted_with(QueryOptions(), scene)
+    path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
+    with pytest.raises(ConfigError, match="refine=retrieval refine.k=K"):
+        load_model(path, overrides={"retrieval_k": 2})

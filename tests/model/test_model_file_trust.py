@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import Relocalizer, load_model, save_model
+from relocfw import Pose, Relocalizer, load_model, save_model
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.retrieval_refiner import RetrievalRefiner
 from tests.cli_runs import relocfw
 
 OPTIONS = {"backbone": {"input_size": 32, "width": 0.125, "feature_dim": 16}}
@@ -26,11 +27,14 @@ class UnregisteredIndex(ExhaustiveIndex):
     """A working SimilarityIndex that no config group registers."""
 
 
-def tiny_relocalizer(crop=None, index=None) -> Relocalizer:
+def tiny_relocalizer(crop=None, index=None, refiner=None) -> Relocalizer:
     torch.manual_seed(0)
     backbone = PoseNet(**OPTIONS["backbone"]).eval()
-    relocalizer = Relocalizer(backbone, index or ExhaustiveIndex(), crop or CentreCrop())
-    relocalizer.fit([np.zeros((36, 48, 3), np.uint8), np.full((36, 48, 3), 200, np.uint8)])
+    relocalizer = Relocalizer(
+        backbone, index or ExhaustiveIndex(), crop or CentreCrop(), refiner=refiner
+    )
+    poses = [Pose([0.0, 0, 0], [1, 0, 0, 0]), Pose([1.0, 0, 0], [0, 1, 0, 0])]
+    relocalizer.fit([np.zeros((36, 48, 3), np.uint8), np.full((36, 48, 3), 200, np.uint8)], poses)
     return relocalizer
 
 
@@ -44,6 +48,19 @@ def saved_payload(tmp_path_factory):
     return torch.load(path, weights_only=True)
 
 
+@pytest.fixture(scope="module")
+def retrieval_payload(tmp_path_factory):
+    """The payload of a genuine model file with a stored refiner (refine=retrieval)."""
+    path = save_model(
+        tmp_path_factory.mktemp("genuine") / "model.relocfw",
+        tiny_relocalizer(refiner=RetrievalRefiner(k=2)),
+        {**OPTIONS, "refine": {"k": 2}},
+        {},
+    )
+    assert isinstance(load_model(path).refiner, RetrievalRefiner)
+    return torch.load(path, weights_only=True)
+
+
 def crafted(payload: dict, tmp_path: Path, part: str, **fields) -> Path:
     """A copy of `payload` with fields of `part` replaced, written as a model file."""
     edited = {**payload, part: {**payload[part], **fields}}
@@ -52,12 +69,12 @@ def crafted(payload: dict, tmp_path: Path, part: str, **fields) -> Path:
     return path
 
 
-@pytest.mark.parametrize("part", ["index", "crop"])
-def test_a_model_file_naming_os_system_runs_nothing(saved_payload, tmp_path, part):
+@pytest.mark.parametrize("part", ["index", "crop", "refine"])
+def test_a_model_file_naming_os_system_runs_nothing(retrieval_payload, tmp_path, part):
     marker = tmp_path / "MARKER"
     # os.system's parameter is `command`: the options are exactly its call.
     path = crafted(
-        saved_payload,
+        retrieval_payload,
         tmp_path,
         part,
         **{"class": "os.system", "options": {"command": f"touch {marker}"}},
@@ -99,6 +116,26 @@ def test_a_class_that_is_not_a_registered_index_is_refused(saved_payload, tmp_pa
     message = str(caught.value)
     assert message.startswith(f"{path}: refused the index class {class_path!r}")
     assert "registered SimilarityIndex plugin" in message
+
+
+def test_a_refiner_class_must_be_a_registered_pose_refiner(retrieval_payload, tmp_path):
+    # Registered, but in the index group: not a refiner.
+    class_path = "relocfw.plugins.exhaustive_index.ExhaustiveIndex"
+    path = crafted(retrieval_payload, tmp_path, "refine", **{"class": class_path})
+    with pytest.raises(DataError) as caught:
+        load_model(path)
+    message = str(caught.value)
+    assert message.startswith(f"{path}: refused the refine class {class_path!r}")
+    assert "registered PoseRefiner plugin" in message
+
+
+def test_a_refiner_option_out_of_range_is_one_data_error(retrieval_payload, tmp_path):
+    path = crafted(retrieval_payload, tmp_path, "refine", options={"k": 0})
+    with pytest.raises(DataError) as caught:
+        load_model(path)
+    assert str(caught.value) == (
+        f"{path}: damaged model file (refine: refine.k must be at least 1, got 0)"
+    )
 
 
 def test_a_registered_target_that_is_not_the_interface_is_refused(

@@ -111,7 +111,10 @@ def method_rows(cfg: DictConfig) -> dict[str, list[str]]:
                 f"compare.methods.{name} must be a list of overrides such as "
                 f"[crop=centre, index=kmeans], got {overrides!r}"
             )
-        rows[str(name)], found = rewrite(overrides)
+        try:
+            rows[str(name)], found = rewrite(overrides)
+        except ConfigError as error:
+            raise ConfigError(f"compare.methods.{name}: {error}") from error
         for spelled in found:
             notes.setdefault(spelled.old, spelled.note(f"compare.methods.{name}"))
     for note in notes.values():

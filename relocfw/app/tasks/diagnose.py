@@ -220,6 +220,12 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     method = done.method
     relocalizer = method.relocalizer(device)
     relocalizer.fit(done.train[1], [f.pose for f in done.train[0]], quiet=quiet)
+    refine = choices.get("refine", "none")
+    if refine != "none":
+        print(
+            f"note: task=diagnose scores every window by the network's pose; refine={refine} "
+            "answers for a chosen crop only and is not applied per window"
+        )
     queries = diagnose(relocalizer, *test, quiet=quiet)
     settings = {
         "crops": "every offset at stride 1 (the configured crop search is not used)",
@@ -227,7 +233,10 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         "backbone_options": method.part_options["backbone"],
         "index": choices["index"],
         "index_options": method.part_options["index"],
-        "retrieval_k": method.query.retrieval_k,
+        # Every window's pose is the network's (Relocalizer.pose_of): a refiner, e.g.
+        # refine=retrieval, answers for the chosen crop only and is not applied here.
+        "refine": choices.get("refine", "none"),
+        "poses": "the network's pose of each window (refine= is not applied per window)",
         "scoring": "plain (every window through the whole network)",
         "input_size": int(relocalizer.backbone.input_size),
         "crop_scale": relocalizer.crop_scale,

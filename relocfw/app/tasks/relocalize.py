@@ -20,7 +20,7 @@ from relocfw.core.query_options import QueryOptions
 from relocfw.core.version import VERSION
 from relocfw.data.frames import mean_pose
 from relocfw.model.distributed import World
-from relocfw.model.model_file import save_model
+from relocfw.model.model_file import save_model, stores_refiner
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.report.evaluation import MethodResult, constant_answer, evaluate
 from relocfw.report.units import METRES, PositionUnit, unit_of
@@ -47,10 +47,11 @@ def relocalize(
     method_result, _ = run_method(method, relocalizer, train, test, quiet)
     options = relocalizer.options
     if "posenet" in baselines and not (
-        isinstance(relocalizer.search, CentreCrop) and options.retrieval_k == 0
+        isinstance(relocalizer.search, CentreCrop) and relocalizer.refiner is None
     ):
         # PoseNet: the centre crop of the same network and map, sampled as the method's
-        # network is (backbone.mc_samples), with its seed; no random crops.
+        # network is (backbone.mc_samples), with its seed; no random crops, no refiner.
+        # Unless the method is that already.
         plain = QueryOptions(
             batch_size=options.batch_size,
             sample_seed=options.sample_seed,
@@ -101,9 +102,9 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     print(
         f"model file: {model}  (relocfw task=localize localize.model={model} localize.images=...)"
     )
-    if method.refiner is not None:
+    if method.refiner is not None and not stores_refiner(relocalizer):
         print(
             f"note: {model.name} holds the network, map and crop search, not the "
-            f"refine={choices['refine']} stage (model files do not store refiners yet): "
-            "task=localize answers with the network's pose"
+            f"refine={choices['refine']} stage ({type(method.refiner).__name__} cannot be "
+            "stored in a model file): task=localize answers with the network's pose"
         )
