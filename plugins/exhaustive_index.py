@@ -28,7 +28,8 @@ class ExhaustiveIndex(SimilarityIndex):
     def neighbours(self, features: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """[n, k] distances to and indices of the nearest training descriptors.
 
-        What the retrieval baseline answers with: the poses of those training images.
+        The same neighbours refine=retrieval (relocfw.plugins.retrieval_refiner) finds:
+        it standardises the map's descriptors as this index does.
         """
         if not hasattr(self, "points"):
             raise DataError("the index is not fitted yet: call fit() first")
