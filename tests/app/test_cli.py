@@ -104,8 +104,11 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
     # Every row shares one trained model: one training curve.
     assert len(list(run_dir.glob("training_curve_*.png"))) == 1
     pngs = sorted(p.name for p in run_dir.glob("synthetic_*.png"))
+    # Retrieval (refine=retrieval) has a confidence, minus the nearest map distance:
+    # its uncertainty quality is measured as a sampled method's is.
     assert pngs == [
         "synthetic_Bayesian_PoseNet_uncertainty.png",
+        "synthetic_Retrieval_uncertainty.png",
         "synthetic_error_per_image.png",
         "synthetic_orientation_error_histogram.png",
         "synthetic_position_error_histogram.png",
@@ -114,6 +117,7 @@ def test_compare_writes_table_and_five_figures(tmp_path, cache):
     ]
     summary = json.loads((run_dir / "comparison.json").read_text())
     assert "Bayesian PoseNet" in summary["scenes"]["synthetic"]["uncertainty"]
+    assert "Retrieval" in summary["scenes"]["synthetic"]["uncertainty"]
     quality = summary["scenes"]["synthetic"]["uncertainty"]["Bayesian PoseNet"]["quality"]
     assert set(quality) == {"position", "orientation"} and "ause" in quality["position"]
     assert "Bayesian PoseNet uncertainty quality" in result.stdout
