@@ -82,6 +82,8 @@ class RetrievalRefiner(PoseRefiner):
         poses = [[*p.position, *p.quaternion] for p in self.poses]
         return {
             **self.zscore.state(),
+            # k too: a caller who saves without the refiner's options still gets it back.
+            "k": torch.tensor(self.k),
             "points": torch.from_numpy(self.points),
             "poses": torch.tensor(poses, dtype=torch.float64).reshape(-1, 7),
         }
@@ -97,6 +99,8 @@ class RetrievalRefiner(PoseRefiner):
                 f"{tuple(poses.shape)} (expected [{len(points)}, 7])"
             )
         self.zscore = ZScore().load_state(state)
+        if "k" in state:  # absent from an index=exhaustive state (older model files)
+            self.k = integer_at_least("refine.k", int(state["k"]), 1)
         self.points = points
         self.poses = [Pose(row[:3], row[3:]) for row in poses]
 

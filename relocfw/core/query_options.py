@@ -30,7 +30,9 @@ MOVED_OUT = {
 }
 
 
-@dataclass(frozen=True)
+# Keyword-only: a field removed or added (retrieval_k became refine=retrieval) must not
+# shift a positional caller's values onto other options.
+@dataclass(frozen=True, kw_only=True)
 class QueryOptions:
     """How a query is localized; every field has the paper's behaviour as its default.
 

@@ -168,6 +168,22 @@ def test_a_stored_refiner_answers_as_the_fitted_one():
         RetrievalRefiner().load_state({**fitted.state(), "poses": poses[:3]})
 
 
+def test_a_stored_refiner_keeps_its_k_without_its_options():
+    views, descriptors, queries = random_map()
+    fitted = RetrievalRefiner(k=3)
+    fitted.fit(views, descriptors)
+    loaded = RetrievalRefiner()  # a caller who saved without the refiner's options
+    loaded.load_state(fitted.state())
+    assert loaded.k == 3
+    query = RefineQuery(flat(0), views[0].pose, queries[0])
+    assert np.array_equal(loaded.refine(query).pose.position, fitted.refine(query).pose.position)
+
+
+def test_query_options_are_keyword_only():
+    with pytest.raises(TypeError):
+        QueryOptions(16)
+
+
 def test_exhaustive_neighbours_are_sorted():
     train = np.random.default_rng(0).normal(size=(20, 4))
     index = ExhaustiveIndex()
