@@ -3,8 +3,8 @@
 For studying the paper's premise (relocfw.report.diagnosis): the offsets are those
 crop=sweep tries at stride 1, cut as the pipeline cuts them (crop_scale included),
 scored by the plain network whatever the options' scoring says, through the
-pipeline's own Scorer, and each pose is what the pipeline answers were that crop
-chosen (retrieval included). So the diagnostic measures what a search sees.
+pipeline's own Scorer, and each pose is the network's pose of that crop (a refiner,
+e.g. refine=retrieval, is not applied). So the diagnostic measures what a search sees.
 """
 
 from __future__ import annotations

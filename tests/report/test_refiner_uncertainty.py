@@ -10,6 +10,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from relocfw.app.tasks.compare import seed_tables
 from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
 from relocfw.report import figures
@@ -26,6 +27,7 @@ from relocfw.report.evaluation import (
 )
 from relocfw.report.seed_comparison import UNCERTAINTY_TITLES, seed_comparison, seed_markdown
 from relocfw.report.uncertainty import confidence_uncertainty, uncertainty_quality
+from relocfw.report.units import METRES
 
 NAN = float("nan")
 # Position errors (m along x); orientation errors grow with them (degrees about z).
@@ -198,6 +200,9 @@ def test_the_seed_table_says_which_signal_each_row_uses():
     plain = next(line for line in markdown.splitlines() if line.startswith("| room | Ref |"))
     assert plain.endswith("| - | - | - | - | - | - | - |")
     assert "fallbacks the most uncertain" in markdown  # the footnote says how to read it
+    # task=compare writes the table through its own unit-aware writer: the same footnote.
+    written, _ = seed_tables(table, "Ref", [0, 1], METRES)
+    assert "fallbacks the most uncertain" in written
     # Without any signal the table keeps its earlier columns and footnote.
     unmeasured = seed_markdown(
         seed_comparison({0: {"room": {"Ref": result("Ref")}}}, {}, "Ref"), "Ref", [0]

@@ -47,7 +47,7 @@ from relocfw.report.evaluation import (
     MethodResult,
     constant_answer,
     evaluate,
-    uncertainty_quality_of,
+    uncertainty_of,
 )
 from relocfw.report.seed_comparison import SeedResults, seed_comparison, seed_footnote, seed_rows
 from relocfw.report.units import (
@@ -367,9 +367,9 @@ def write_comparison(
             )
         checks = {m: uncertainty_check(r) for m, r in by_method.items()}
         checks = {m: c for m, c in checks.items() if c is not None}
-        qualities = {m: uncertainty_quality_of(r) for m, r in by_method.items()}
-        qualities = {m: q for m, q in qualities.items() if q is not None}
-        for method, quality in qualities.items():
+        measured = {m: uncertainty_of(r) for m, r in by_method.items()}
+        measured = {m: u for m, u in measured.items() if u is not None}
+        for method, (signal, quality) in measured.items():
             checks[method]["quality"] = quality
             written.append(
                 figures.uncertainty_against_error(
@@ -383,7 +383,8 @@ def write_comparison(
             print(
                 f"{method} uncertainty quality ({scene}): AUSE position "
                 f"{quality['position']['ause']:.3f} {unit.name}, orientation "
-                f"{quality['orientation']['ause']:.2f} deg; Spearman(spread, error) position "
+                f"{quality['orientation']['ause']:.2f} deg; Spearman(uncertainty, error) "
+                f"({signal.name}) position "
                 f"{quality['position']['spearman_spread_error']:.2f}, orientation "
                 f"{quality['orientation']['spearman_spread_error']:.2f}"
             )
@@ -427,7 +428,9 @@ def seed_tables(
 ) -> tuple[str, str]:
     """The seed table as Markdown (with its footnote) and as CSV, in `unit`'s terms."""
     header, rows = relabel_table(*seed_rows(table, reference), unit)
-    return as_markdown(header, rows) + seed_footnote(seeds, unit.metric), as_csv(header, rows)
+    measured = any("uncertainty" in stats for rows in table.values() for stats in rows.values())
+    footnote = seed_footnote(seeds, unit.metric, uncertainty=measured)
+    return as_markdown(header, rows) + footnote, as_csv(header, rows)
 
 
 def write_seed_comparison(
