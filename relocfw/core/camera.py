@@ -17,7 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.arrays import point_rows
+from relocfw.core.errors import ConfigError
 
 
 def positive_size(name: str, value: object) -> int:
@@ -135,12 +136,8 @@ class PinholeCamera:
         Raises:
             DataError: when `points_camera` is not an [N, 3] array.
         """
-        try:
-            points = np.asarray(points_camera, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise DataError("points_camera must be an [N, 3] array of numbers") from None
-        if points.ndim != 2 or points.shape[1] != 3:
-            raise DataError(f"points_camera must be an [N, 3] array, got shape {points.shape}")
+        # NaN rows are allowed: they project to NaN, as points behind the camera do.
+        points = point_rows(points_camera, "points_camera", 3, finite=False)
         z = points[:, 2]
         in_front = z > 0
         # Divide only where z > 0 so no division-by-zero warning escapes.

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from relocfw.core.arrays import point_rows
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import conjugate, quaternion_to_matrix
@@ -51,29 +52,13 @@ def checked_correspondences(
 ) -> tuple[np.ndarray, np.ndarray]:
     """[N, 2] and [N, 3] float64 arrays of finite numbers, or a DataError naming the
     argument at fault."""
-    try:
-        image = np.asarray(points_2d, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DataError("points_2d must be an [N, 2] array of numbers") from None
-    try:
-        world = np.asarray(points_3d, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DataError("points_3d must be an [N, 3] array of numbers") from None
-    if image.ndim != 2 or image.shape[1] != 2:
-        raise DataError(f"points_2d must be an [N, 2] array of pixels, got shape {image.shape}")
-    if world.ndim != 2 or world.shape[1] != 3:
-        raise DataError(f"points_3d must be an [N, 3] array of points, got shape {world.shape}")
+    image = point_rows(points_2d, "points_2d", 2)
+    world = point_rows(points_3d, "points_3d", 3)
     if len(image) != len(world):
         raise DataError(
             f"points_2d has {len(image)} rows, points_3d {len(world)}; row i of each must "
             "be one correspondence"
         )
-    # NaN rows (e.g. keypoints lifted where depth was missing) must be dropped by the
-    # caller, who knows why they are NaN; passed on they would poison the solver.
-    for name, values in (("points_2d", image), ("points_3d", world)):
-        if not np.isfinite(values).all():
-            bad = int((~np.isfinite(values).all(axis=1)).sum())
-            raise DataError(f"{name} has {bad} rows with NaN or infinity; drop them before solving")
     return image, world
 
 

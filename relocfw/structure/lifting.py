@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from relocfw.core.arrays import point_rows
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import DataError
 from relocfw.core.geometry import quaternion_to_matrix
@@ -70,14 +71,7 @@ def lift_keypoints(
         DataError: when `keypoints` is not an [N, 2] array of finite numbers or
             `depth` is not a 2-D array of real numbers.
     """
-    try:
-        points = np.asarray(keypoints, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DataError("keypoints must be an [N, 2] array of numbers") from None
-    if points.ndim != 2 or points.shape[1] != 2:
-        raise DataError(f"keypoints must be an [N, 2] array, got shape {points.shape}")
-    if not np.isfinite(points).all():
-        raise DataError("keypoints hold NaN or infinite coordinates")
+    points = point_rows(keypoints, "keypoints", 2)
     try:
         depth = np.asarray(depth)
     except ValueError:  # ragged nested lists

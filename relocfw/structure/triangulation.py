@@ -17,6 +17,7 @@ import math
 import cv2
 import numpy as np
 
+from relocfw.core.arrays import point_rows
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import quaternion_to_matrix
@@ -31,15 +32,7 @@ def world_to_camera(pose: Pose) -> tuple[np.ndarray, np.ndarray]:
 
 def checked_pixels(points: np.ndarray, name: str) -> np.ndarray:
     """`points` as [N, 2] float64 of finite numbers, or a DataError naming it."""
-    try:
-        array = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise DataError(f"{name} must be an [N, 2] array of numbers") from None
-    if array.ndim != 2 or array.shape[1] != 2:
-        raise DataError(f"{name} must be an [N, 2] array of pixels, got shape {array.shape}")
-    if not np.isfinite(array).all():
-        raise DataError(f"{name} holds NaN or infinite coordinates")
-    return array
+    return point_rows(points, name, 2)
 
 
 def checked_bound(name: str, value: float, low: float, high: float) -> float:

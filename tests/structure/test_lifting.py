@@ -70,7 +70,7 @@ def test_no_keypoints_give_an_empty_array():
     "keypoints, depth, message",
     [
         (np.zeros((3, 3)), np.ones((4, 4)), "keypoints must be an \\[N, 2\\]"),
-        (np.full((3, 2), np.nan), np.ones((4, 4)), "keypoints hold NaN"),
+        (np.full((3, 2), np.nan), np.ones((4, 4)), "keypoints has 3 rows with NaN"),
         (np.zeros((3, 2)), np.ones((4, 4, 3)), "depth must be a non-empty \\[H, W\\]"),
         (np.zeros((3, 2)), np.ones((0, 4)), "depth must be a non-empty \\[H, W\\]"),
     ],

@@ -108,7 +108,7 @@ def test_no_points_give_empty_arrays():
     [
         (np.zeros((3, 3)), np.zeros((3, 2)), DataError, "points_a must be an \\[N, 2\\]"),
         (np.zeros((3, 2)), np.zeros((4, 2)), DataError, "points_a has 3 rows, points_b 4"),
-        (np.zeros((3, 2)), np.full((3, 2), np.inf), DataError, "points_b holds NaN"),
+        (np.zeros((3, 2)), np.full((3, 2), np.inf), DataError, "points_b has 3 rows with NaN"),
     ],
 )
 def test_malformed_points_raise_one_error(a, b, error, message):
