@@ -9,7 +9,6 @@ benchmarks/structure_solvers.py compares it with pycolmap's solver.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,7 +17,7 @@ from relocfw.core.arrays import point_rows
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import conjugate, quaternion_to_matrix
-from relocfw.core.options import integer_at_least
+from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.values import Pose
 
 MINIMUM_CORRESPONDENCES = 4  # P3P's three plus one to choose among its solutions
@@ -101,14 +100,7 @@ def solve_absolute_pose(
             poselib is not installed.
     """
     image, world = checked_correspondences(points_2d, points_3d)
-    try:
-        max_error = float(max_error_px)
-    except (TypeError, ValueError):
-        raise ConfigError(
-            f"max_error_px must be a number of pixels, got {max_error_px!r}"
-        ) from None
-    if not (math.isfinite(max_error) and max_error > 0):
-        raise ConfigError(f"max_error_px must be a positive number of pixels, got {max_error_px!r}")
+    max_error = positive_number("max_error_px", max_error_px)
     min_inliers = integer_at_least("min_inliers", min_inliers, MINIMUM_CORRESPONDENCES)
     try:
         import poselib

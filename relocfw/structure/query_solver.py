@@ -22,7 +22,7 @@ import numpy as np
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import check_rgb_image
-from relocfw.core.options import integer_at_least
+from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.values import Pose
 from relocfw.structure.absolute_pose import solve_absolute_pose
 from relocfw.structure.features import LocalFeatures, extract_rootsift
@@ -167,12 +167,7 @@ def localize_against(
     ratio = checked_ratio(ratio)  # before the extraction, so a wrong one fails at once
     max_features = integer_at_least("max_features", max_features, 1)
     min_inliers = integer_at_least("min_inliers", min_inliers, 4)
-    try:
-        bound = float(max_error_px)
-    except (TypeError, ValueError):
-        bound = math.nan
-    if not (math.isfinite(bound) and bound > 0):
-        raise ConfigError(f"max_error_px must be a positive number of pixels, got {max_error_px!r}")
+    bound = positive_number("max_error_px", max_error_px)
 
     start = time.perf_counter()
     if query_features is None:
