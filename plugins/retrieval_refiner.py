@@ -7,6 +7,11 @@ as index=exhaustive standardises them, so it works beside any index (the index s
 the crop search) and finds the neighbours index=exhaustive would. Before issue 22 this
 was the query option `retrieval_k`, which needed index=exhaustive.
 
+Memory: that copy is float64, N x D x 8 bytes (a 700-image map of 1280-d EfficientNet
+descriptors: 7 MB; 10^6 x 2048: 16 GB), searched exhaustively, beside whatever the
+index keeps. For maps of 10^5 images and more this refiner is not built for the scale
+(retrieving through index=faiss's approximate neighbours would be; not written yet).
+
 Confidence: minus the z-scored descriptor distance to the nearest map image, so higher
 is more trustworthy (0 is a query that looks exactly like a map image). It never falls
 back: there is always a nearest map image.
@@ -90,19 +95,50 @@ class RetrievalRefiner(PoseRefiner):
 
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
         """What `state` returned; also index=exhaustive's state plus the map poses,
-        which is how a model file written before refine=retrieval is read."""
-        points = state["points"].double().numpy()
-        poses = state["poses"].double().numpy()
-        if poses.ndim != 2 or poses.shape[1] != 7 or len(poses) != len(points):
+        which is how a model file written before refine=retrieval is read. A state
+        that is not that (a model file is data from anyone) is a DataError naming the
+        key, before anything is kept."""
+        points = finite_matrix(state, "points")
+        poses = finite_matrix(state, "poses")
+        if poses.shape[1] != 7 or len(poses) != len(points):
             raise DataError(
                 f"retrieval state: {len(points)} map descriptors but poses of shape "
                 f"{tuple(poses.shape)} (expected [{len(points)}, 7])"
             )
-        self.zscore = ZScore().load_state(state)
+        for key in ("mean", "std"):
+            column = state.get(key)
+            if not isinstance(column, torch.Tensor) or column.shape != (points.shape[1],):
+                raise DataError(
+                    f"retrieval state: {key} must be a tensor of {points.shape[1]} values "
+                    f"(one per descriptor dimension), got {describe(column)}"
+                )
+        k = self.k
         if "k" in state:  # absent from an index=exhaustive state (older model files)
-            self.k = integer_at_least("refine.k", int(state["k"]), 1)
+            stored = state["k"]
+            if not isinstance(stored, torch.Tensor) or stored.numel() != 1:
+                raise DataError(f"retrieval state: k must be one integer, got {describe(stored)}")
+            k = integer_at_least("refine.k", stored.item(), 1)
+        self.zscore = ZScore().load_state(state)
+        self.k = k
         self.points = points
         self.poses = [Pose(row[:3], row[3:]) for row in poses]
+
+
+def finite_matrix(state: dict[str, torch.Tensor], key: str) -> np.ndarray:
+    """state[key] as a 2-D float64 array of finite numbers, or a DataError naming key."""
+    value = state.get(key)
+    if not isinstance(value, torch.Tensor) or value.ndim != 2:
+        raise DataError(f"retrieval state: {key} must be a 2-D tensor, got {describe(value)}")
+    array = value.double().numpy()
+    if not np.isfinite(array).all():
+        raise DataError(f"retrieval state: {key} holds NaN or infinite values")
+    return array
+
+
+def describe(value: object) -> str:
+    if isinstance(value, torch.Tensor):
+        return f"a tensor of shape {tuple(value.shape)}"
+    return "nothing" if value is None else type(value).__name__
 
 
 def weighted_mean_pose(poses: Sequence[Pose], distances: np.ndarray) -> Pose:

@@ -107,7 +107,8 @@ def refuse_removed(override: str, match: re.Match[str]) -> None:
     if match["rest"] is None and match["prefix"] != "~":
         return
     value = (match["rest"] or "=")[1:].strip()
-    if value in ("", "0"):
+    # ~key (deleting it), key=null (the old default) and key=0 all meant no retrieval.
+    if match["prefix"] == "~" or value.lower() in ("", "0", "null", "none"):
         instead = "drop it (refine=none, the default, answers with the network's pose)"
     else:
         instead = f"write refine=retrieval refine.k={value}"

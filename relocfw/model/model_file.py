@@ -21,7 +21,7 @@ from typing import Any
 
 import torch
 
-from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.errors import ConfigError, DataError, RelocfwError
 from relocfw.core.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.plugin_registry import registered_targets
@@ -259,6 +259,19 @@ def load_model(
     return relocalizer
 
 
+# How a third party's refiner may fail on a crafted state.
+REFINER_FAILURES = (
+    ConfigError,
+    DataError,
+    KeyError,
+    TypeError,
+    ValueError,
+    AttributeError,
+    RuntimeError,
+    NotImplementedError,
+)
+
+
 def stored_refiner(
     payload: dict[str, Any], classes: dict[str, type], path: Path
 ) -> PoseRefiner | None:
@@ -266,9 +279,13 @@ def stored_refiner(
     if "refine" not in classes:
         return None
     part = payload["refine"]
+    # A third party's refiner may fail on a crafted state in any of these ways; each
+    # ends in one line naming the file and the part.
     try:
         refiner = classes["refine"](**part["options"])
         refiner.load_state(part["state"])
-    except (ConfigError, DataError) as error:
-        raise DataError(f"{path}: damaged model file (refine: {error})") from error
+    except REFINER_FAILURES as error:
+        # relocfw's own errors are sentences; anything else also says what it was.
+        said = str(error) if isinstance(error, RelocfwError) else repr(error)
+        raise DataError(f"{path}: damaged model file (refine: {said})") from error
     return refiner

@@ -21,9 +21,13 @@ FORMAT_2_QUERY_KEYS = ("retrieval_k", "crop_samples", "sample_seed", "rerank")
 RETRIEVAL_K_FORMATS = (2, 3)
 # The refiner that answers for a format 2 or 3 file's retrieval_k > 0 (conf/refine/
 # retrieval.yaml's _target_): its state is index=exhaustive's plus the map poses, both
-# of which such a file holds (retrieval_k needed index=exhaustive). The name still goes
+# of which such a file holds when its index is the exhaustive one. The name still goes
 # through the registry check of every part a file names.
 RETRIEVAL_REFINER = "relocfw.plugins.retrieval_refiner.RetrievalRefiner"
+# retrieval_k needed an index with `neighbours`: index=exhaustive, or index=faiss (or a
+# third party's). Only the exhaustive index's state is the refiner's (z-scored float64
+# descriptors); another index's state means something else and is refused, not guessed.
+EXHAUSTIVE_INDEX = "relocfw.plugins.exhaustive_index.ExhaustiveIndex"
 
 
 def stored_options(payload: dict[str, Any], path: Path) -> dict[str, Any]:
@@ -59,6 +63,13 @@ def retrieval_part(payload: dict[str, Any], retrieval_k: Any, path: Path) -> Non
         raise DataError(f"{path}: damaged model file (index is not a mapping with a state)")
     if not isinstance(poses, torch.Tensor):
         raise DataError(f"{path}: damaged model file (retrieval_k={k} but no map poses)")
+    if index.get("class") != EXHAUSTIVE_INDEX:
+        raise DataError(
+            f"{path}: an older model file with query option retrieval_k={k} and index "
+            f"{index.get('class')!r}; this relocfw reads its retrieval only with "
+            f"index=exhaustive: run `relocfw task=relocalize` again with refine=retrieval "
+            f"refine.k={k} to write a new one"
+        )
     payload["refine"] = {
         "class": RETRIEVAL_REFINER,
         "options": {"k": k},

@@ -120,7 +120,10 @@ def uncertainty_check(
         "most_uncertain_median_position_m": float(np.median(positions[high])),
         "least_uncertain_median_orientation_deg": float(np.median(orientations[low])),
         "most_uncertain_median_orientation_deg": float(np.median(orientations[high])),
-        "spread_error_rank_correlation": spearman(spread, positions),
+        # A missing value ranks as the most uncertain, as in relocfw.report.uncertainty.
+        "spread_error_rank_correlation": spearman(
+            np.where(np.isnan(spread), np.inf, spread), positions
+        ),
     }
 
 

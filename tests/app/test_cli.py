@@ -316,9 +316,13 @@ def test_retrieval_k_ends_in_one_line_giving_the_new_spelling(tmp_path, old, k):
     assert not (tmp_path / "outputs").exists()  # refused before Hydra ran
 
 
-def test_retrieval_k_0_is_refused_with_what_it_meant():
+@pytest.mark.parametrize(
+    "old", ["query.retrieval_k=0", "query.retrieval_k=null", "~query.retrieval_k", "~retrieval_k=1"]
+)
+def test_retrieval_k_0_is_refused_with_what_it_meant(old):
+    # 0, null (the old default) and deleting the key all meant: no retrieval.
     with pytest.raises(ConfigError, match="drop it \\(refine=none, the default"):
-        rewrite(["query.retrieval_k=0"])
+        rewrite([old])
 
 
 def test_an_old_methods_row_with_retrieval_k_names_the_row(tmp_path):

@@ -271,3 +271,46 @@ def test_retrieval_k_is_refused_as_an_override_with_the_new_spelling(scene, tmp_
     path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
     with pytest.raises(ConfigError, match="refine=retrieval refine.k=K"):
         load_model(path, overrides={"retrieval_k": 2})
+
+
+def test_an_old_retrieval_file_with_another_index_is_refused_not_guessed(scene, tmp_path):
+    # retrieval_k also ran beside index=faiss, whose state is not z-scored descriptors.
+    relocalizer, parts = fitted_with(QueryOptions(), scene, 1)
+    path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
+    old = as_format_3(path, tmp_path, 2)
+    payload = torch.load(old, weights_only=True)
+    payload["index"]["class"] = "relocfw.plugins.faiss_index.FaissIndex"
+    torch.save(payload, old)
+    with pytest.raises(DataError, match="reads its retrieval only with index=exhaustive"):
+        load_model(old)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("k", torch.tensor(2.7), "refine.k must be an integer"),
+        ("k", torch.tensor([1, 2]), "k must be one integer"),
+        ("points", None, "points must be a 2-D tensor, got nothing"),
+        ("mean", torch.zeros(1), "mean must be a tensor of"),
+    ],
+)
+def test_a_crafted_retrieval_state_is_one_data_error(scene, tmp_path, key, value, message):
+    relocalizer, parts = fitted_with(QueryOptions(), scene, 2)
+    path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
+    payload = torch.load(path, weights_only=True)
+    payload["refine"]["state"][key] = value
+    torch.save(payload, path)
+    with pytest.raises(
+        DataError, match=rf"model.relocfw: damaged model file \(refine: .*{message}"
+    ):
+        load_model(path)
+
+
+def test_nan_in_a_retrieval_state_is_refused_at_load(scene, tmp_path):
+    relocalizer, parts = fitted_with(QueryOptions(), scene, 2)
+    path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
+    payload = torch.load(path, weights_only=True)
+    payload["refine"]["state"]["points"][0, 0] = float("nan")
+    torch.save(payload, path)
+    with pytest.raises(DataError, match="points holds NaN or infinite values"):
+        load_model(path)

@@ -252,3 +252,12 @@ def test_the_uncertainty_columns_name_no_metres_for_a_non_metric_run():
     assert "AUSE pos (model units)" in header and not any("(m)" in title for title in header)
     stats = relabel_tree(table["room"]["Refined"]["uncertainty"], unit)
     assert stats == table["room"]["Refined"]["uncertainty"]  # no key names metres
+
+
+def test_the_uncertainty_check_ranks_a_missing_confidence_as_most_uncertain():
+    # The largest error has no confidence: ranked most uncertain, the ranking stays
+    # perfect (a NaN passed to Spearman would make the whole correlation NaN).
+    confidence = -ERRORS.copy()
+    confidence[np.argmax(ERRORS)] = NAN
+    check = uncertainty_check(result("Refined", confidence=confidence))
+    assert check["spread_error_rank_correlation"] == pytest.approx(1.0)
