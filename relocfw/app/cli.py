@@ -14,6 +14,7 @@ from omegaconf import DictConfig
 from relocfw.app import spellings
 from relocfw.app.config_schema import name_of, store
 from relocfw.app.devices import pick_device
+from relocfw.app.engines import wanted_engine
 from relocfw.app.hydra_errors import COMPOSITION_ERRORS, one_line
 from relocfw.app.hydra_plugins import install as install_plugin_discovery
 from relocfw.app.plugin_discovery import conflicts, discover_options
@@ -37,11 +38,10 @@ FULL_ERROR = "HYDRA_FULL_ERROR"  # Hydra's own switch: raise instead of printing
 
 
 def check_common(cfg: DictConfig) -> torch.device:
-    """What every task needs checked first: the device, and options of other tasks."""
-    task, backend = name_of(cfg.task), name_of(cfg.localize.backend)
-    if backend != "torch" and task != "localize":
-        raise ConfigError(f"localize.backend={backend} applies to task=localize only")
-    return pick_device(cfg.device)
+    """What every task needs checked first: the device, and the engine's options."""
+    device = pick_device(cfg.device)
+    wanted_engine(cfg, device)
+    return device
 
 
 def run(cfg: DictConfig) -> None:

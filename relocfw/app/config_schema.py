@@ -37,9 +37,16 @@ class Scoring(Enum):
     shared = "shared"
 
 
-class Backend(Enum):
+class Engine(Enum):
+    auto = "auto"
     torch = "torch"
     onnx = "onnx"
+
+
+class Int8(Enum):
+    none = "none"
+    dynamic = "dynamic"
+    static = "static"
 
 
 class Baseline(Enum):
@@ -95,7 +102,13 @@ class QueryConfig:
 class LocalizeConfig:
     model: Optional[str] = None  # noqa: UP045
     images: Optional[str] = None  # noqa: UP045
-    backend: Backend = Backend.torch
+
+
+@dataclass
+class OnnxConfig:
+    threads: Optional[int] = None  # noqa: UP045
+    int8: Int8 = Int8.none
+    spinning: bool = False
 
 
 @dataclass
@@ -145,6 +158,8 @@ class RelocfwConfig:
     device: str = MISSING
     cache_dir: str = MISSING
     quiet: bool = MISSING
+    engine: Engine = MISSING
+    onnx: OnnxConfig = field(default_factory=OnnxConfig)
     # The plugin groups: open mappings, their options are the chosen plugin's.
     backbone: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006
     index: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006

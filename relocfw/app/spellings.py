@@ -28,7 +28,8 @@ MOVED = {
     "rerank": "query.rerank",
     "crop_samples": "query.crop_samples",
     "images": "localize.images",
-    "backend": "localize.backend",
+    "backend": "engine",
+    "localize.backend": "engine",
     "baselines": "relocalize.baselines",
     "pretrained_required": "train.pretrained_required",
 }

@@ -102,9 +102,9 @@ class DropoutBackbone(Backbone):
         return output
 
     def forward(self, images: torch.Tensor) -> PoseOutput:
+        if not self.training and self.mc_samples > 0:
+            return self.monte_carlo_answer(images)
         x = self.normalise(images)
-        if not self.training and self.mc_samples > 0 and self.dropout_variant != "head":
-            return self.sampled_below_descriptor(x)
         drop = self.drop if self.training and self.dropout_variant == "all" else None
         maps = self.trunk_maps(x, drop)
         last = maps[-1]
@@ -117,18 +117,36 @@ class DropoutBackbone(Backbone):
         """Dropout that is on whenever it is called (training, or sampling at test time)."""
         return nn.functional.dropout(maps, self.dropout_rate, training=True)
 
-    def sampled_below_descriptor(self, x: torch.Tensor) -> PoseOutput:
-        """Monte Carlo answers of the kendall / all variants: the layers below the
-        first dropout run once for the batch, the rest once per sample, batched."""
+    def monte_carlo_answer(
+        self,
+        images: torch.Tensor,
+        last_maps: Callable[[torch.Tensor], torch.Tensor] | None = None,
+        lower_maps: Callable[[torch.Tensor], torch.Tensor] | None = None,
+    ) -> PoseOutput:
+        """Eval-mode answers with `mc_samples` dropout masks per image: the layers
+        below the first dropout run once for the batch, the rest once per sample,
+        batched.
+
+        Args:
+            images: [B, 3, s, s] RGB in [0, 1].
+            last_maps: images -> the trunk's last maps, dropout-free (default: this
+                network's `feature_maps`); an inference engine passes its own graph.
+            lower_maps: images -> `trunk_lower`'s output (default: this network's), for
+                the "all" variant. The sampled layers always run here, in torch.
+        """
+        last_maps = last_maps or self.feature_maps
+        if self.dropout_variant == "head":  # only the head samples
+            return self.head(pool(last_maps(images)), self.to_world_positions, self.mc_samples)
         if self.dropout_variant == "kendall":
-            below = self.trunk_maps(x)[-1]  # the first dropout is on it
+            below = last_maps(images)  # the first dropout is on it
 
             def above(maps: torch.Tensor) -> torch.Tensor:
                 return pool(self.drop(maps))
 
             clean = pool(below)
         else:
-            below = self.trunk_lower(x)  # a dropout follows it
+            lower_maps = lower_maps or self.lower_maps
+            below = lower_maps(images)  # a dropout follows it
 
             def above(maps: torch.Tensor) -> torch.Tensor:
                 return pool(self.trunk_upper(maps, self.drop)[-1])
@@ -137,6 +155,10 @@ class DropoutBackbone(Backbone):
         return self.head.sampled_above(
             below, above, clean, self.to_world_positions, self.mc_samples
         )
+
+    def lower_maps(self, images: torch.Tensor) -> torch.Tensor:
+        """`trunk_lower` of normalised `images`: what an engine exports for "all"."""
+        return self.trunk_lower(self.normalise(images))
 
     def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
         return self.trunk_maps(self.normalise(images))[-1]

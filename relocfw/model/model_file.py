@@ -30,6 +30,7 @@ from relocfw.core.refinement import PoseRefiner
 from relocfw.core.values import Pose
 from relocfw.model.checkpoints import read_torch_file, save_atomic
 from relocfw.model.older_formats import stored_options
+from relocfw.model.onnx_backbone import trained_network
 
 # 2: input normalisation and training crop_scale saved in the state; 3: every query
 # option as one QueryOptions mapping ("query"); 4: the refiner ("refine", where it can be
@@ -151,8 +152,10 @@ def save_model(
     Raises:
         ConfigError: a part's class is not a registered plugin (see load_model).
     """
+    # The torch network, also when an inference engine runs it (engine=onnx).
+    network = trained_network(relocalizer.backbone)
     parts = {
-        "backbone": relocalizer.backbone,
+        "backbone": network,
         "index": relocalizer.index,
         "crop": relocalizer.search,
     }
@@ -169,9 +172,7 @@ def save_model(
             "class": registered_class_path(part, name),
             "options": dict(options.get(name, {})),
         }
-    payload["backbone"]["state"] = {
-        k: v.detach().cpu() for k, v in relocalizer.backbone.state_dict().items()
-    }
+    payload["backbone"]["state"] = {k: v.detach().cpu() for k, v in network.state_dict().items()}
     payload["index"]["state"] = relocalizer.index.state()
     if "refine" in parts:
         payload["refine"]["state"] = relocalizer.refiner.state()

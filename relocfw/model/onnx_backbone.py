@@ -1,132 +1,114 @@
-"""OnnxBackbone: the exported network (relocfw.model.onnx_export) run by onnxruntime.
+"""OnnxBackbone: a trained torch backbone whose passes onnxruntime runs (engine=onnx).
 
-It stands in for the torch backbone it was exported from, inside the same pipeline:
-the map, the crop search and the settings still come from the model file, so
-`task=localize backend=onnx` answers as `backend=torch` does (to float32 rounding)
-and shows what a robot running the ONNX file alone would get.
+It stands in for its torch `source` inside the same pipeline (relocfw.core.scorer):
+every dropout-free pass (plain scoring, the map, the chosen crop, random crops) runs
+the full graph; scoring=shared runs the maps graph over the whole strip; Monte Carlo
+dropout runs the dropout-free layers below the first dropout as a graph and the
+sampled layers above it in torch (relocfw.model.onnx_graphs says why). The answers
+are the source's to float32 rounding; the source itself is the model (what model
+files store, see `trained_network`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from pathlib import Path
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 import torch
 
-from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.interfaces import Backbone
-from relocfw.core.pipeline import Relocalizer
-from relocfw.core.sampling import configured_samples
+from relocfw.core.sampling import configured_samples, sample_share
 from relocfw.core.values import PoseOutput
-from relocfw.model.onnx_export import (
-    INPUT_NAME,
-    OUTPUT_NAMES,
-    WEIGHTS_KEY,
-    require,
-    weights_fingerprint,
-)
+from relocfw.model.dropout_backbone import DropoutBackbone
+from relocfw.model.onnx_export import INPUT_NAME, OUTPUT_NAMES
+from relocfw.model.onnx_graphs import MAPS_OUTPUT
 
 
 class OnnxBackbone(Backbone):
-    """An onnxruntime session in place of a torch backbone.
+    """The torch backbone `source` with its passes run by onnxruntime sessions.
 
     Args:
-        path: the ONNX file written by `export_onnx` from `like`.
-        like: the torch backbone it was exported from: its input size, descriptor
-            length, training crop_scale and position buffers are taken from it (the
-            pipeline reads them; the graph itself already answers in metres).
-        threads: onnxruntime's intra-op threads; None: torch's thread count, so both
-            backends run on the same cores (OMP_NUM_THREADS applies to both).
-        providers: onnxruntime execution providers, in order of preference.
-
-    No Monte Carlo sampling (the graph is the dropout-free network) and no
-    scoring=shared (the graph has no feature_maps): the pipeline's own checks refuse
-    the latter, `onnx_relocalizer` both.
+        source: the trained torch backbone (the weights the graphs were exported from).
+        sessions: onnxruntime sessions by graph kind: "full" (required), "maps",
+            "lower" (relocfw.model.onnx_graphs). A missing kind's passes run in torch.
+        description: how the engine runs, for reports (e.g. "onnxruntime, 2 threads").
     """
 
-    # Inputs cross to numpy as they are: NCHW contiguous is what the graph expects.
+    # Inputs cross to numpy as they are: NCHW contiguous is what the graphs expect.
     channels_last = False
 
-    def __init__(
-        self,
-        path: Path,
-        like: Backbone,
-        threads: int | None = None,
-        providers: Sequence[str] = ("CPUExecutionProvider",),
-    ) -> None:
+    def __init__(self, source: Backbone, sessions: Mapping[str, Any], description: str) -> None:
         super().__init__()
-        runtime = require("onnxruntime", "backend=onnx")
-        path = Path(path)
-        if not path.is_file():
-            raise DataError(f"ONNX network not found: {path} (write it with relocfw task=export)")
-        options = runtime.SessionOptions()
-        options.intra_op_num_threads = int(threads or torch.get_num_threads())
-        options.inter_op_num_threads = 1
-        try:
-            self.session = runtime.InferenceSession(str(path), options, providers=list(providers))
-        except Exception as error:  # onnxruntime raises its own types for a bad file
-            raise DataError(f"cannot load the ONNX network {path}: {error}") from error
-        self.input_size = int(like.input_size)
-        self.feature_dim = int(like.feature_dim)
-        self.pretrained = bool(like.pretrained)
-        self.check_graph(path, like)
+        if "full" not in sessions:
+            raise ValueError("OnnxBackbone needs the full graph's session")
+        self.source = source.cpu().eval()
+        self.sessions = dict(sessions)
+        self.description = description
+        self.input_size = int(source.input_size)
+        self.feature_dim = int(source.feature_dim)
+        self.pretrained = bool(source.pretrained)
+        self.test_time_options = tuple(source.test_time_options)
+        self._sample_share: float | None = None
         with torch.no_grad():
-            self.position_mean.copy_(like.position_mean.detach().cpu())
-            self.position_scale.copy_(like.position_scale.detach().cpu())
-            self.crop_scale.copy_(like.crop_scale.detach().cpu())
+            self.position_mean.copy_(source.position_mean.detach().cpu())
+            self.position_scale.copy_(source.position_scale.detach().cpu())
+            self.crop_scale.copy_(source.crop_scale.detach().cpu())
 
-    def check_graph(self, path: Path, like: Backbone) -> None:
-        """DataError unless the graph has relocfw's interface and `like`'s weights."""
-        inputs = [(i.name, list(i.shape)) for i in self.session.get_inputs()]
-        outputs = [o.name for o in self.session.get_outputs()]
-        size = self.input_size
-        if [(name, shape[1:]) for name, shape in inputs] != [(INPUT_NAME, [3, size, size])]:
-            raise DataError(
-                f"{path}: expected one input {INPUT_NAME!r} [B, 3, {size}, {size}], got {inputs}"
-            )
-        if outputs != list(OUTPUT_NAMES):
-            raise DataError(f"{path}: expected outputs {list(OUTPUT_NAMES)}, got {outputs}")
-        exported_from = self.session.get_modelmeta().custom_metadata_map.get(WEIGHTS_KEY)
-        if exported_from != weights_fingerprint(like):
-            raise DataError(
-                f"{path} holds other weights than the model it should replace (exported "
-                "from an earlier model file?): run relocfw task=export model=MODEL again"
-            )
+    # The source's test-time options are this backbone's: relocfw.core.sampling sets
+    # mc_samples for the chosen crop's samples and reads it back.
+    @property
+    def mc_samples(self) -> int:
+        return int(getattr(self.source, "mc_samples", 0))
+
+    @mc_samples.setter
+    def mc_samples(self, samples: int) -> None:
+        self.source.mc_samples = samples
+
+    @property
+    def shares_strip(self) -> bool:
+        return self.source.shares_strip
+
+    @property
+    def sample_share(self) -> float:  # type: ignore[override]
+        """The source's share (measured on its torch layers: the graphs hide them)."""
+        if self._sample_share is None:
+            self._sample_share = sample_share(self.source, torch.device("cpu"))
+        return self._sample_share
+
+    def run(self, kind: str, images: torch.Tensor) -> list[np.ndarray]:
+        array = np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
+        session = self.sessions[kind]
+        names = list(OUTPUT_NAMES) if kind == "full" else [MAPS_OUTPUT]
+        return session.run(names, {INPUT_NAME: array})
 
     def forward(self, images: torch.Tensor) -> PoseOutput:
-        array = np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
-        answers = self.session.run(list(OUTPUT_NAMES), {INPUT_NAME: array})
-        positions, quaternions, features = (torch.from_numpy(a).to(images.device) for a in answers)
+        if configured_samples(self.source) > 0:
+            return self.sampled(images)
+        positions, quaternions, features = (torch.from_numpy(a) for a in self.run("full", images))
         return PoseOutput(positions, quaternions, features)
 
+    def sampled(self, images: torch.Tensor) -> PoseOutput:
+        """Monte Carlo dropout: the dropout-free layers below the first dropout by the
+        graphs, the sampled ones by the source in torch."""
+        if not isinstance(self.source, DropoutBackbone):
+            return self.source(images)  # a plugin's own sampling: torch throughout
+        lower = self.lower_maps if "lower" in self.sessions else None
+        return self.source.monte_carlo_answer(images, self.feature_maps, lower)
 
-def onnx_relocalizer(
-    relocalizer: Relocalizer, path: Path, threads: int | None = None
-) -> Relocalizer:
-    """`relocalizer` with its torch backbone replaced by the ONNX network at `path`.
+    def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
+        if "maps" not in self.sessions:
+            return self.source.feature_maps(images)
+        return torch.from_numpy(self.run("maps", images)[0])
 
-    The map, crop search and every setting are kept.
+    def lower_maps(self, images: torch.Tensor) -> torch.Tensor:
+        return torch.from_numpy(self.run("lower", images)[0])
 
-    Raises:
-        ConfigError: the relocalizer scores with scoring=shared or samples Monte Carlo
-            dropout, which the ONNX graph cannot do.
-        DataError: the file is missing, unreadable or exported from other weights.
-    """
-    check_onnx_scoring(relocalizer.options.scoring)
-    samples = configured_samples(relocalizer.backbone)
-    if samples > 0:
-        raise ConfigError(
-            f"backend=onnx runs the dropout-free network, but the model samples "
-            f"backbone.mc_samples={samples} Monte Carlo dropout masks (use backend=torch)"
-        )
-    return relocalizer.with_backbone(OnnxBackbone(path, relocalizer.backbone, threads))
+    def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
+        # One linear layer per candidate: torch, on the source's weights.
+        return self.source.describe_pooled(pooled)
 
 
-def check_onnx_scoring(scoring: str) -> None:
-    """ConfigError for scoring=shared, which needs the trunk's maps the graph lacks."""
-    if scoring == "shared":
-        raise ConfigError(
-            "backend=onnx cannot use scoring=shared: the ONNX graph returns poses and "
-            "descriptors, not the trunk's feature maps (use scoring=plain or backend=torch)"
-        )
+def trained_network(backbone: Backbone) -> Backbone:
+    """The torch backbone behind `backbone`: what a model file stores and what trains."""
+    return backbone.source if isinstance(backbone, OnnxBackbone) else backbone

@@ -20,6 +20,7 @@ from hydra import compose
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
+from relocfw.app.engines import on_engine
 from relocfw.app.hydra_errors import COMPOSITION_ERRORS, one_line
 from relocfw.app.methods import build, build_method, scene_name
 from relocfw.app.results import run_method, safe_name, write_results
@@ -209,10 +210,12 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
                 method.index.check_map_size(len(train[0]))
                 # One curve per distinct model: rows sharing a model share its file.
                 seed_dir = run_dir / f"seed_{seed}" if len(seeds) > 1 else run_dir
-                prepare_model(
+                checkpoint = prepare_model(
                     method_cfg, method, train, device, curve_dir=seed_dir, unit=unit_of(dataset)
                 )
-                relocalizer = method.relocalizer(device)
+                relocalizer = on_engine(
+                    method_cfg, method.relocalizer(device), checkpoint, device, train[1]
+                )
                 result, features = run_method(rows[name], relocalizer, train, test, quiet)
                 results[seed][label][rows[name]] = result
                 if "seed" in method_cfg.crop and len(crop_seeds) > 1:

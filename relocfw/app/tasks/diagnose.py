@@ -20,6 +20,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from relocfw.app.engines import on_engine
 from relocfw.app.methods import dataset_settings, scene_name
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.tasks.train import trained
@@ -218,7 +219,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     test = load_split(done.dataset, "test", quiet)
     write_skipped(done.dataset, done.run_dir)
     method = done.method
-    relocalizer = method.relocalizer(device)
+    relocalizer = on_engine(cfg, method.relocalizer(device), done.checkpoint, device, done.train[1])
     relocalizer.fit(done.train[1], [f.pose for f in done.train[0]], quiet=quiet)
     refine = choices.get("refine", "none")
     if refine != "none":

@@ -34,8 +34,8 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         f"ONNX network: {out}  (images [B,3,{size},{size}] in [0,1] -> positions, "
         f"quaternions, features; onnxruntime matches torch to {largest:.1e})"
     )
-    where = f" export.out={out}" if cfg.export.out else ""
     print(
         f"localize with it: relocfw task=localize localize.model={model} localize.images=... "
-        f"localize.backend=onnx{where}"
+        "(engine=onnx, the default on a CPU, runs the same network from graphs it caches "
+        "beside the model file)"
     )

@@ -1,8 +1,8 @@
 """task=localize: poses of new images from a saved model (localize.model, localize.images).
 
 The model file brings its network, map, crop search and query options; each query.*
-value that is set (not null) replaces the file's. localize.backend=onnx runs the
-network that task=export wrote, with onnxruntime.
+value that is set (not null) replaces the file's. The network runs on the configured
+engine (relocfw.app.engines), its graphs cached beside the model file.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from relocfw.app.config_schema import name_of
+from relocfw.app.engines import on_engine
 from relocfw.app.methods import in_query_terms, query_values
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import read_rgb
@@ -27,8 +27,6 @@ from relocfw.core.values import Localization
 from relocfw.model.checkpoints import write_text_atomic
 from relocfw.model.distributed import World
 from relocfw.model.model_file import load_model
-from relocfw.model.onnx_backbone import check_onnx_scoring, onnx_relocalizer
-from relocfw.model.onnx_export import onnx_path, require
 from relocfw.report.evaluation import ANSWER_COLUMNS, POSE_COLUMNS, answer_cells
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -122,31 +120,13 @@ def localize_images(
 
 def load_for_localize(cfg: DictConfig, device: torch.device) -> Relocalizer:
     """The model file's Relocalizer with the query.* values that are set, its network
-    run by torch or onnxruntime (localize.backend)."""
+    run by the configured engine (graphs cached beside the model file)."""
     model = model_file(cfg.localize.model, "localize.model")
-    overrides = query_values(cfg)
-    backend = name_of(cfg.localize.backend)
-    if backend == "onnx":
-        if overrides.get("scoring") is not None:
-            check_onnx_scoring(overrides["scoring"])
-        if device.type != "cpu":
-            raise ConfigError(
-                f"localize.backend=onnx runs the network with onnxruntime on the CPU; drop "
-                f"device={device} (or use localize.backend=torch)"
-            )
-        require("onnxruntime", "localize.backend=onnx")
-        network = onnx_path(model, cfg.export.out)
-        if not network.is_file():
-            where = f" export.out={cfg.export.out}" if cfg.export.out else ""
-            raise DataError(
-                f"ONNX network not found: {network}; run relocfw task=export "
-                f"export.model={model}{where} first"
-            )
     try:
-        relocalizer = load_model(model, device, overrides)
+        relocalizer = load_model(model, device, query_values(cfg))
     except ConfigError as error:
         raise in_query_terms(error) from error
-    return relocalizer if backend == "torch" else onnx_relocalizer(relocalizer, network)
+    return on_engine(cfg, relocalizer, model, device)
 
 
 def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:

@@ -11,6 +11,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from relocfw.app.config_schema import Baseline, name_of
+from relocfw.app.engines import on_engine
 from relocfw.app.methods import centre_label, dataset_settings, scene_name
 from relocfw.app.results import Split, run_method, write_results
 from relocfw.app.splits import load_split, write_skipped
@@ -77,7 +78,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     test = load_split(done.dataset, "test", quiet)
     write_skipped(done.dataset, done.run_dir)
     method = done.method
-    relocalizer = method.relocalizer(device)
+    relocalizer = on_engine(cfg, method.relocalizer(device), done.checkpoint, device, done.train[1])
     relocalize(
         relocalizer,
         method.label,

@@ -1,0 +1,211 @@
+"""The inference engine's ONNX graphs of a backbone, exported once and cached beside it.
+
+`engine=onnx` (relocfw.model.onnx_engine) runs every network pass of a query with
+onnxruntime. A query needs up to three parts of the network, each its own graph:
+
+- full: images [B, 3, s, s] -> positions, quaternions, features (the robot's graph,
+  relocfw.model.onnx_export): plain scoring, the map, the chosen crop's pose.
+- maps: images [B, 3, H, W], any size -> the trunk's last maps before pooling:
+  scoring=shared (one pass over the whole strip) and the Monte Carlo variants whose
+  first dropout sits on those maps (head, kendall).
+- lower: images -> the layers below every dropout (`DropoutBackbone.trunk_lower`),
+  for the "all" variant, whose samples rerun everything above them.
+
+What runs once per Monte Carlo sample (a dropout, the descriptor layer, the
+regressor) stays in torch: for head and kendall it is under 1% of a pass, and a
+graph with the mask as an input would be a second network to keep in step.
+
+Each file holds the weights' fingerprint, its kind and relocfw's graph format in its
+metadata; a file that cannot be read, holds other weights, another kind or format,
+or answers differently from torch on the check images is rebuilt (atomically), never
+used.
+"""
+
+from __future__ import annotations
+
+import io
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from relocfw.core.atomic_files import atomic_write
+from relocfw.core.errors import DataError
+from relocfw.core.interfaces import Backbone
+from relocfw.model.dropout_backbone import DropoutBackbone
+from relocfw.model.onnx_export import (
+    INPUT_NAME,
+    LEGACY_EXPORTER,
+    OPSET,
+    OUTPUT_NAMES,
+    QUIET_WARNINGS,
+    TOLERANCE,
+    WEIGHTS_KEY,
+    PoseGraph,
+    require,
+)
+
+KIND_KEY = "relocfw.engine_graph"
+FORMAT_KEY = "relocfw.engine_format"
+# Raised when what a graph file holds changes meaning; older files are then rebuilt.
+GRAPH_FORMAT = "1"
+MAPS_OUTPUT = "maps"
+
+
+class MapsGraph(nn.Module):
+    """images of any size -> the trunk's last maps (Backbone.feature_maps)."""
+
+    def __init__(self, backbone: Backbone) -> None:
+        super().__init__()
+        self.backbone = backbone
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.backbone.feature_maps(images)
+
+
+class LowerGraph(nn.Module):
+    """images -> the layers below every dropout (DropoutBackbone.lower_maps)."""
+
+    def __init__(self, backbone: DropoutBackbone) -> None:
+        super().__init__()
+        self.backbone = backbone
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.backbone.lower_maps(images)
+
+
+@dataclass(frozen=True)
+class GraphKind:
+    """One part of the network as a graph: its name, outputs and which axes vary."""
+
+    name: str
+    outputs: tuple[str, ...]
+    any_size: bool  # height and width dynamic (strips), else the input size only
+
+    def module(self, network: Backbone) -> nn.Module:
+        if self.name == "full":
+            return PoseGraph(network)
+        if self.name == "maps":
+            return MapsGraph(network)
+        return LowerGraph(network)
+
+    def check_sizes(self, side: int) -> list[tuple[int, int]]:
+        """(height, width) of the check images: a landscape and a portrait strip too
+        when the graph takes any size, since a size baked into the trace fails there."""
+        if not self.any_size:
+            return [(side, side)]
+        return [(side, side), (side, side + side // 3 + 5), (side + side // 2 + 3, side)]
+
+
+FULL = GraphKind("full", OUTPUT_NAMES, any_size=False)
+MAPS = GraphKind("maps", (MAPS_OUTPUT,), any_size=True)
+LOWER = GraphKind("lower", (MAPS_OUTPUT,), any_size=True)
+KINDS = {kind.name: kind for kind in (FULL, MAPS, LOWER)}
+
+
+def kinds_needed(backbone: Backbone) -> list[GraphKind]:
+    """The graphs a backbone's queries use: full always; maps when it shares strips or
+    samples dropout on its maps; lower for the "all" dropout variant."""
+    kinds = [FULL]
+    variant = getattr(backbone, "dropout_variant", None)
+    if backbone.shares_strip or isinstance(backbone, DropoutBackbone):
+        kinds.append(MAPS)
+    if isinstance(backbone, DropoutBackbone) and variant == "all":
+        kinds.append(LOWER)
+    return kinds
+
+
+def graph_bytes(network: Backbone, kind: GraphKind, fingerprint: str, version: str) -> bytes:
+    """The serialised, checked graph of one part of `network` (a dropout-free copy)."""
+    onnx = require("onnx", "engine=onnx")
+    module = kind.module(network).eval()
+    side = int(network.input_size)
+    example = torch.rand(2, 3, side, side, generator=torch.Generator().manual_seed(0))
+    dynamic = {0: "batch", 2: "height", 3: "width"} if kind.any_size else {0: "batch"}
+    axes = {INPUT_NAME: dynamic}
+    for name in kind.outputs:  # poses per image; maps as big as the image
+        axes[name] = {0: "batch"} if name in OUTPUT_NAMES else dynamic
+    buffer = io.BytesIO()
+    with torch.no_grad(), warnings.catch_warnings():
+        for message in QUIET_WARNINGS:
+            warnings.filterwarnings("ignore", message=message)
+        # Tracer warnings about shapes read as Python numbers: the check on other
+        # sizes below is what proves the graph right at every size.
+        warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
+        torch.onnx.export(
+            module,
+            (example,),
+            buffer,
+            **LEGACY_EXPORTER,
+            input_names=[INPUT_NAME],
+            output_names=list(kind.outputs),
+            dynamic_axes=axes,
+            opset_version=OPSET,
+            do_constant_folding=True,
+        )
+    graph = onnx.load_from_string(buffer.getvalue())
+    onnx.checker.check_model(graph)
+    onnx.helper.set_model_props(
+        graph,
+        {
+            WEIGHTS_KEY: fingerprint,
+            KIND_KEY: kind.name,
+            FORMAT_KEY: GRAPH_FORMAT,
+            "relocfw.version": version,
+        },
+    )
+    return graph.SerializeToString()
+
+
+def largest_difference(session: Any, network: Backbone, kind: GraphKind) -> float:
+    """Largest |onnxruntime - torch| of the graph's outputs on seeded random images of
+    every check size; DataError when one is beyond TOLERANCE (relative above 1)."""
+    module = kind.module(network).eval()
+    side = int(network.input_size)
+    largest = 0.0
+    for number, (height, width) in enumerate(kind.check_sizes(side)):
+        images = torch.rand(3, 3, height, width, generator=torch.Generator().manual_seed(number))
+        answers = session.run(list(kind.outputs), {INPUT_NAME: images.numpy()})
+        with torch.no_grad():
+            expected = module(images)
+        expected = expected if isinstance(expected, tuple) else (expected,)
+        for name, got, want in zip(kind.outputs, answers, expected, strict=True):
+            want = want.numpy()
+            if got.shape != want.shape or not np.allclose(got, want, TOLERANCE, TOLERANCE):
+                detail = (
+                    f"shape {got.shape} against {want.shape}"
+                    if got.shape != want.shape
+                    else f"up to {np.max(np.abs(got - want)):.3g}"
+                )
+                raise DataError(
+                    f"the {kind.name} graph's {name} differ from torch's ({detail}) on "
+                    f"{height} x {width} check images"
+                )
+            largest = max(largest, float(np.max(np.abs(got - want))))
+    return largest
+
+
+def graph_metadata(session: Any) -> dict[str, str]:
+    return dict(session.get_modelmeta().custom_metadata_map)
+
+
+def why_stale(session: Any, kind: GraphKind, fingerprint: str) -> str | None:
+    """Why a loaded graph file cannot serve (None: it can)."""
+    metadata = graph_metadata(session)
+    if metadata.get(FORMAT_KEY) != GRAPH_FORMAT:
+        return f"graph format {metadata.get(FORMAT_KEY)!r}, not {GRAPH_FORMAT!r}"
+    if metadata.get(KIND_KEY) != kind.name:
+        return f"it holds the {metadata.get(KIND_KEY)!r} graph"
+    if metadata.get(WEIGHTS_KEY) != fingerprint:
+        return "it was exported from other weights"
+    return None
+
+
+def write_graph(data: bytes, path: Path) -> None:
+    """All or nothing: a run killed mid-write leaves no half graph to load."""
+    with atomic_write(path, "wb") as stream:
+        stream.write(data)
