@@ -1,0 +1,288 @@
+"""Per-query time of every query path on torch, onnxruntime and onnxruntime int8.
+
+The same pipeline (640 x 480 views of the synthetic room, k-means map of --map-images
+views) localizes every query with each method on each engine, round robin (the order
+rotates from query to query, so a slow phase of the machine hits every pair alike),
+after --warmup untimed queries per pair. Reported per method and engine: the median
+ms per query, its multiple of the same engine's centre crop (x centre), its speed-up
+over torch, and how far its answers are from torch's (same crop, largest position
+difference). Timing does not depend on the weights: networks are freshly initialised
+(EfficientNet-Lite0 from its packaged ImageNet weights).
+
+Geometries (--geometry): `paper` (GoogLeNet PoseNet, 224 px) and `real_cpu`
+(EfficientNet-Lite0, 128 px, the real_cpu preset's network). Methods: centre crop,
+the paper's GA and the exhaustive sweep scored plainly, the GA with shared scoring,
+and Bayesian PoseNet's kendall variant with 40 Monte Carlo samples of the centre crop.
+
+Engines on a CPU: torch, onnx (float32) and onnx-int8 (static, calibrated on the map
+views). With --device cuda: torch, torch-amp (float16 autocast) and torch-compile.
+--threads-study also times centre and plain GA at the paper geometry under every
+combination of torch threads, onnxruntime intra-op threads and thread spinning.
+
+    .venv/bin/python benchmarks/engine_cost.py --queries 12 --threads-study
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import platform
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import device_name, render_views, write_json  # benchmarks/, the script's folder
+
+from relocfw import Relocalizer
+from relocfw.core.interfaces import Backbone
+from relocfw.core.query_options import QueryOptions
+from relocfw.core.values import PoseOutput
+from relocfw.model.onnx_engine import EngineOptions, onnx_engine
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.plugins.ga_crop import GeneticCropSearch
+from relocfw.plugins.kmeans_index import KMeansIndex
+from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.sweep_crop import SweepCrop
+
+CROP_SCALE = 1.142857  # PoseNet's 256 / 224, what every preset trains with
+METHODS = ("centre", "ga plain", "sweep plain", "ga shared", "mc kendall x40")
+CPU_ENGINES = ("torch", "onnx", "onnx-int8")
+GPU_ENGINES = ("torch", "torch-amp", "torch-compile")
+
+
+def network(geometry: str, variant: str = "head", samples: int = 0) -> Backbone:
+    """A freshly initialised network of the geometry (seeded: every engine gets the
+    same weights)."""
+    torch.manual_seed(0)
+    if geometry == "paper":
+        backbone = PoseNet(input_size=224, dropout_variant=variant, mc_samples=samples)
+    else:
+        from relocfw.plugins.efficientnet_lite import EfficientNetLite0
+
+        backbone = EfficientNetLite0(input_size=128, dropout_variant=variant, mc_samples=samples)
+    backbone.set_crop_scale(CROP_SCALE)
+    return backbone.eval()
+
+
+class Autocast(Backbone):
+    """A CUDA backbone run under float16 autocast (AMP) at inference."""
+
+    def __init__(self, inner: Backbone) -> None:
+        super().__init__()
+        self.inner = inner
+        self.input_size, self.feature_dim = inner.input_size, inner.feature_dim
+        self.channels_last = inner.channels_last
+        self.crop_scale.copy_(inner.crop_scale)
+
+    def forward(self, images: torch.Tensor) -> PoseOutput:
+        with torch.autocast("cuda", dtype=torch.float16):
+            out = self.inner(images)
+        return PoseOutput(out.positions.float(), out.quaternions.float(), out.features.float())
+
+
+def on_engine(
+    relocalizer: Relocalizer, engine: str, folder: Path, calibration: list, options: dict
+) -> Relocalizer:
+    """The fitted relocalizer with its network run by `engine` (same map)."""
+    backbone = relocalizer.backbone
+    owner = folder / f"{id(backbone)}.pt"
+    if engine == "torch":
+        return relocalizer
+    if engine == "onnx":
+        return relocalizer.replace(backbone=onnx_engine(backbone, owner, EngineOptions(**options)))
+    if engine == "onnx-int8":
+        settings = EngineOptions(int8="static", **options)
+        return relocalizer.replace(backbone=onnx_engine(backbone, owner, settings, calibration))
+    if engine == "torch-amp":
+        return relocalizer.replace(backbone=Autocast(backbone))
+    if engine == "torch-compile":
+        compiled = torch.compile(backbone)
+        compiled.eval()
+        return relocalizer.replace(backbone=compiled)
+    raise ValueError(f"unknown engine {engine}")
+
+
+def method_pipeline(
+    geometry: str, method: str, maps: list, device: str, batch_size: int
+) -> Relocalizer:
+    """The method's fitted torch pipeline."""
+    search = {"centre": CentreCrop(), "sweep": SweepCrop()}.get(
+        method.split()[0], GeneticCropSearch(seed=0)
+    )
+    if method.startswith("mc"):
+        backbone, search = network(geometry, "kendall", 40), CentreCrop()
+    else:
+        backbone = network(geometry)
+    scoring = "shared" if method.endswith("shared") else "plain"
+    options = QueryOptions(batch_size=batch_size, scoring=scoring)
+    relocalizer = Relocalizer(backbone, KMeansIndex(k=min(40, len(maps))), search, options, device)
+    relocalizer.fit(maps)
+    return relocalizer
+
+
+@dataclass
+class Pair:
+    method: str
+    engine: str
+    relocalizer: Relocalizer
+    threads: int | None = None  # torch threads while it runs (None: as they are)
+
+
+def round_robin(pairs: list[Pair], queries: list, warmup: int) -> dict[tuple, list]:
+    """Every pair localizes every query, in an order rotating from query to query."""
+    for pair in pairs:
+        for query in queries[:warmup]:
+            run(pair, query)
+    found: dict[tuple, list] = {(p.method, p.engine): [] for p in pairs}
+    for number, query in enumerate(queries):
+        shift = number % len(pairs)
+        for pair in pairs[shift:] + pairs[:shift]:
+            found[pair.method, pair.engine].append(run(pair, query))
+    return found
+
+
+def run(pair: Pair, query: np.ndarray):  # noqa: ANN201 - a Localization
+    if pair.threads is not None:
+        torch.set_num_threads(pair.threads)
+    return pair.relocalizer.localize(query)
+
+
+def summary(found: dict[tuple, list], engines: tuple[str, ...]) -> list[dict]:
+    rows = []
+    for (method, engine), answers in found.items():
+        reference = found.get((method, engines[0]), answers)
+        ms = 1000 * float(np.median([a.seconds for a in answers]))
+        rows.append(
+            {
+                "method": method,
+                "engine": engine,
+                "ms_per_query": ms,
+                "mean_ms_per_query": 1000 * float(np.mean([a.seconds for a in answers])),
+                "network_passes": float(np.mean([a.network_passes for a in answers])),
+                "same_crop_as_torch": float(
+                    np.mean([a.crop == b.crop for a, b in zip(answers, reference, strict=True)])
+                ),
+                "max_position_difference_m": float(
+                    max(
+                        np.max(np.abs(a.pose.position - b.pose.position))
+                        for a, b in zip(answers, reference, strict=True)
+                    )
+                ),
+            }
+        )
+    by = {(r["method"], r["engine"]): r for r in rows}
+    for row in rows:
+        centre = by.get(("centre", row["engine"]))
+        first = by.get((row["method"], engines[0]))
+        row["x_centre"] = row["ms_per_query"] / centre["ms_per_query"] if centre else None
+        row["speedup_over_torch"] = first["ms_per_query"] / row["ms_per_query"] if first else None
+    return rows
+
+
+def table(rows: list[dict], title: str) -> str:
+    lines = [
+        f"\n{title}",
+        "| method | engine | ms/query | x centre | x faster than torch | same crop | max pos diff (m) |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['method']} | {r['engine']} | {r['ms_per_query']:.1f} | "
+            f"{r['x_centre']:.2f} | {r['speedup_over_torch']:.2f} | "
+            f"{100 * r['same_crop_as_torch']:.0f}% | {r['max_position_difference_m']:.1e} |"
+        )
+    return "\n".join(lines)
+
+
+def geometry_run(geometry: str, args: argparse.Namespace, folder: Path) -> list[dict]:
+    engines = GPU_ENGINES if args.device.startswith("cuda") else CPU_ENGINES
+    engines = tuple(e for e in engines if e in args.engines) or engines
+    maps, _ = render_views(args.map_images, 0)
+    queries, _ = render_views(args.queries + args.warmup, -1)
+    pairs = []
+    for method in args.methods:
+        base = method_pipeline(geometry, method, maps, args.device, args.batch_size)
+        for engine in engines:
+            started = time.perf_counter()
+            pairs.append(Pair(method, engine, on_engine(base, engine, folder, maps, {})))
+            print(f"{geometry} {method} {engine}: ready in {time.perf_counter() - started:.1f} s")
+    rows = summary(round_robin(pairs, queries, args.warmup), engines)
+    print(table(rows, f"{geometry}: 640 x 480 views, {args.queries} queries"))
+    return rows
+
+
+def threads_study(args: argparse.Namespace, folder: Path) -> list[dict]:
+    """centre and plain GA at the paper geometry under every thread setting."""
+    maps, _ = render_views(args.map_images, 0)
+    queries, _ = render_views(args.queries + args.warmup, -1)
+    cores = torch.get_num_threads()
+    counts = sorted({1, cores})
+    pairs = []
+    for method in ("centre", "ga plain"):
+        base = method_pipeline("paper", method, maps, "cpu", args.batch_size)
+        for threads in counts:
+            pairs.append(Pair(method, f"torch {threads}t", base, threads))
+        for threads, spinning in itertools.product(counts, (False, True)):
+            options = {"threads": threads, "spinning": spinning}
+            engine = f"onnx {threads}t{' spin' if spinning else ''}"
+            # torch's own threads stay at every core: the pipeline's small torch ops.
+            pairs.append(Pair(method, engine, on_engine(base, "onnx", folder, maps, options), cores))
+    found = round_robin(pairs, queries, args.warmup)
+    torch.set_num_threads(cores)
+    engines = tuple(dict.fromkeys(p.engine for p in pairs))
+    rows = summary(found, (f"torch {cores}t", *engines))
+    print(table(rows, "thread settings, paper geometry"))
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--queries", type=int, default=12)
+    parser.add_argument("--warmup", type=int, default=2, help="untimed queries per pair")
+    parser.add_argument("--map-images", type=int, default=20)
+    parser.add_argument("--batch-size", type=int, default=16, help="query.batch_size")
+    parser.add_argument("--geometry", nargs="+", default=["paper", "real_cpu"])
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--engines", nargs="+", default=[*CPU_ENGINES, *GPU_ENGINES])
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--threads-study", action="store_true")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/engine_cost.json"))
+    args = parser.parse_args()
+    report: dict = {
+        "views": [640, 480],
+        "queries": args.queries,
+        "warmup": args.warmup,
+        "map_images": args.map_images,
+        "batch_size": args.batch_size,
+        "device": device_name(args.device),
+        "machine": platform.processor() or platform.machine(),
+        "cores": os.cpu_count(),
+        "torch_version": torch.__version__,
+        "load_average_1min_before": os.getloadavg()[0],
+        "geometries": {},
+    }
+    try:
+        import onnxruntime
+
+        report["onnxruntime_version"] = onnxruntime.__version__
+    except ImportError:
+        pass
+    timed: Callable[[], float] = time.perf_counter
+    started = timed()
+    with tempfile.TemporaryDirectory(prefix="relocfw-engine-") as folder:
+        for geometry in args.geometry:
+            report["geometries"][geometry] = geometry_run(geometry, args, Path(folder))
+        if args.threads_study:
+            report["threads"] = threads_study(args, Path(folder))
+    report["seconds"] = timed() - started
+    report["load_average_1min_after"] = os.getloadavg()[0]
+    write_json(report, args.out)
+
+
+if __name__ == "__main__":
+    main()
