@@ -55,16 +55,22 @@ CPU_ENGINES = ("torch", "onnx", "onnx-int8")
 GPU_ENGINES = ("torch", "torch-amp", "torch-compile")
 
 
-def network(geometry: str, variant: str = "head", samples: int = 0) -> Backbone:
+SIZES = {"paper": 224, "real_cpu": 128}
+
+
+def network(
+    geometry: str, variant: str = "head", samples: int = 0, size: int | None = None, width=1.0
+) -> Backbone:
     """A freshly initialised network of the geometry (seeded: every engine gets the
-    same weights)."""
+    same weights); `size` and `width` shrink it for the plumbing test."""
     torch.manual_seed(0)
+    size = size or SIZES[geometry]
     if geometry == "paper":
-        backbone = PoseNet(input_size=224, dropout_variant=variant, mc_samples=samples)
+        backbone = PoseNet(size, width=width, dropout_variant=variant, mc_samples=samples)
     else:
         from relocfw.plugins.efficientnet_lite import EfficientNetLite0
 
-        backbone = EfficientNetLite0(input_size=128, dropout_variant=variant, mc_samples=samples)
+        backbone = EfficientNetLite0(size, dropout_variant=variant, mc_samples=samples)
     backbone.set_crop_scale(CROP_SCALE)
     return backbone.eval()
 
@@ -108,19 +114,21 @@ def on_engine(
 
 
 def method_pipeline(
-    geometry: str, method: str, maps: list, device: str, batch_size: int
+    geometry: str, method: str, maps: list, args: argparse.Namespace
 ) -> Relocalizer:
     """The method's fitted torch pipeline."""
     search = {"centre": CentreCrop(), "sweep": SweepCrop()}.get(
         method.split()[0], GeneticCropSearch(seed=0)
     )
+    shape = {"size": args.input_size, "width": args.width}
     if method.startswith("mc"):
-        backbone, search = network(geometry, "kendall", 40), CentreCrop()
+        backbone, search = network(geometry, "kendall", 40, **shape), CentreCrop()
     else:
-        backbone = network(geometry)
+        backbone = network(geometry, **shape)
     scoring = "shared" if method.endswith("shared") else "plain"
-    options = QueryOptions(batch_size=batch_size, scoring=scoring)
-    relocalizer = Relocalizer(backbone, KMeansIndex(k=min(40, len(maps))), search, options, device)
+    options = QueryOptions(batch_size=args.batch_size, scoring=scoring)
+    index = KMeansIndex(k=min(40, len(maps)))
+    relocalizer = Relocalizer(backbone, index, search, options, args.device)
     relocalizer.fit(maps)
     return relocalizer
 
@@ -184,16 +192,21 @@ def summary(found: dict[tuple, list], engines: tuple[str, ...]) -> list[dict]:
     return rows
 
 
+def number(value: float | None) -> str:
+    return "-" if value is None else f"{value:.2f}"
+
+
 def table(rows: list[dict], title: str) -> str:
     lines = [
         f"\n{title}",
-        "| method | engine | ms/query | x centre | x faster than torch | same crop | max pos diff (m) |",
+        "| method | engine | ms/query | x centre | x faster than torch | same crop "
+        "| max pos diff (m) |",
         "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
             f"| {r['method']} | {r['engine']} | {r['ms_per_query']:.1f} | "
-            f"{r['x_centre']:.2f} | {r['speedup_over_torch']:.2f} | "
+            f"{number(r['x_centre'])} | {number(r['speedup_over_torch'])} | "
             f"{100 * r['same_crop_as_torch']:.0f}% | {r['max_position_difference_m']:.1e} |"
         )
     return "\n".join(lines)
@@ -202,36 +215,39 @@ def table(rows: list[dict], title: str) -> str:
 def geometry_run(geometry: str, args: argparse.Namespace, folder: Path) -> list[dict]:
     engines = GPU_ENGINES if args.device.startswith("cuda") else CPU_ENGINES
     engines = tuple(e for e in engines if e in args.engines) or engines
-    maps, _ = render_views(args.map_images, 0)
-    queries, _ = render_views(args.queries + args.warmup, -1)
+    maps, _ = render_views(args.map_images, 0, *args.view_size)
+    queries, _ = render_views(args.queries + args.warmup, -1, *args.view_size)
     pairs = []
     for method in args.methods:
-        base = method_pipeline(geometry, method, maps, args.device, args.batch_size)
+        base = method_pipeline(geometry, method, maps, args)
         for engine in engines:
             started = time.perf_counter()
             pairs.append(Pair(method, engine, on_engine(base, engine, folder, maps, {})))
             print(f"{geometry} {method} {engine}: ready in {time.perf_counter() - started:.1f} s")
     rows = summary(round_robin(pairs, queries, args.warmup), engines)
-    print(table(rows, f"{geometry}: 640 x 480 views, {args.queries} queries"))
+    width, height = args.view_size
+    print(table(rows, f"{geometry}: {width} x {height} views, {args.queries} queries"))
     return rows
 
 
 def threads_study(args: argparse.Namespace, folder: Path) -> list[dict]:
     """centre and plain GA at the paper geometry under every thread setting."""
-    maps, _ = render_views(args.map_images, 0)
-    queries, _ = render_views(args.queries + args.warmup, -1)
+    maps, _ = render_views(args.map_images, 0, *args.view_size)
+    queries, _ = render_views(args.queries + args.warmup, -1, *args.view_size)
     cores = torch.get_num_threads()
     counts = sorted({1, cores})
     pairs = []
     for method in ("centre", "ga plain"):
-        base = method_pipeline("paper", method, maps, "cpu", args.batch_size)
+        base = method_pipeline("paper", method, maps, args)
         for threads in counts:
             pairs.append(Pair(method, f"torch {threads}t", base, threads))
         for threads, spinning in itertools.product(counts, (False, True)):
             options = {"threads": threads, "spinning": spinning}
             engine = f"onnx {threads}t{' spin' if spinning else ''}"
             # torch's own threads stay at every core: the pipeline's small torch ops.
-            pairs.append(Pair(method, engine, on_engine(base, "onnx", folder, maps, options), cores))
+            pairs.append(
+                Pair(method, engine, on_engine(base, "onnx", folder, maps, options), cores)
+            )
     found = round_robin(pairs, queries, args.warmup)
     torch.set_num_threads(cores)
     engines = tuple(dict.fromkeys(p.engine for p in pairs))
@@ -250,15 +266,20 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     parser.add_argument("--engines", nargs="+", default=[*CPU_ENGINES, *GPU_ENGINES])
     parser.add_argument("--device", default="cpu")
+    parser.add_argument("--input-size", type=int, help="replaces the geometry's (tests)")
+    parser.add_argument("--view-size", type=int, nargs=2, default=[640, 480], metavar=("W", "H"))
+    parser.add_argument("--width", type=float, default=1.0, help="GoogLeNet's width (tests)")
     parser.add_argument("--threads-study", action="store_true")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/engine_cost.json"))
     args = parser.parse_args()
     report: dict = {
-        "views": [640, 480],
+        "views": args.view_size,
         "queries": args.queries,
         "warmup": args.warmup,
         "map_images": args.map_images,
         "batch_size": args.batch_size,
+        "input_size": args.input_size or SIZES,
+        "width": args.width,
         "device": device_name(args.device),
         "machine": platform.processor() or platform.machine(),
         "cores": os.cpu_count(),

@@ -17,9 +17,11 @@ finite answers only; what they cost in accuracy is measured (docs/results/engine
 
 from __future__ import annotations
 
+import logging
 import os
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -276,7 +278,7 @@ def quantised(
     import onnx
     from onnxruntime import quantization
 
-    with tempfile.TemporaryDirectory(prefix="relocfw-int8-") as folder:
+    with tempfile.TemporaryDirectory(prefix="relocfw-int8-") as folder, quiet_logging():
         source, prepared, target = (Path(folder) / n for n in ("f.onnx", "p.onnx", "q.onnx"))
         source.write_bytes(float_data)
         # Shape inference and graph clean-up first, as onnxruntime's docs advise.
@@ -308,6 +310,18 @@ def quantised(
         },
     )
     return graph.SerializeToString()
+
+
+@contextmanager
+def quiet_logging() -> Iterator[None]:
+    """onnxruntime's quantisation logs every rescaled weight at INFO on the root
+    logger, which Hydra prints: hundreds of lines per graph. Warnings still show."""
+    previous = logging.root.manager.disable
+    logging.disable(logging.INFO)
+    try:
+        yield
+    finally:
+        logging.disable(previous)
 
 
 class CalibrationImages:

@@ -155,20 +155,75 @@ def test_cost_scaling(tmp_path, tiny_model, monkeypatch):
     assert {r["map_descriptors"] for r in report["map_sizes"]} == {20, 40}
 
 
-def test_onnx_cost(tmp_path):
+def test_engine_cost(tmp_path):
     pytest.importorskip("onnxruntime", reason="relocfw[onnx] not installed")
+    methods = ["centre", "mc kendall x40"]  # the full and maps graphs, torch's samples
     report = run_script(
-        "onnx_cost.py",
-        tmp_path / "o.json",
+        "engine_cost.py",
+        tmp_path / "e.json",
         "--queries",
         "2",
         "--warmup",
-        "1",
+        "0",
         "--map-images",
         "4",
+        "--geometry",
+        "paper",
         "--input-size",
-        "32",
+        "48",
+        "--width",
+        "0.25",
+        "--view-size",
+        "160",
+        "120",
+        "--methods",
+        *methods,
     )
-    assert [r["backend"] for r in report["rows"]] == ["torch", "onnx"]
-    assert all(r["ms_per_query"] > 0 for r in report["rows"])
-    assert report["max_position_difference_m"] < 1e-4  # the same pose from both
+    rows = report["geometries"]["paper"]
+    assert {(r["method"], r["engine"]) for r in rows} == {
+        (m, e) for m in methods for e in ("torch", "onnx", "onnx-int8")
+    }
+    assert all(r["ms_per_query"] > 0 for r in rows)
+    for row in rows:  # float32 onnxruntime answers as torch does; int8 only runs
+        if row["engine"] == "onnx":
+            assert row["same_crop_as_torch"] == 1.0
+            assert row["max_position_difference_m"] < 1e-4
+
+
+REDKITCHEN = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes-redkitchen"
+
+
+@pytest.mark.skipif(not REDKITCHEN.is_dir(), reason=f"{REDKITCHEN} is absent")
+def test_structure_build_cost(tmp_path):
+    pytest.importorskip("poselib", reason="relocfw[structure] not installed")
+    # 6 real frames: the 12-image map cycles through them twice.
+    report = run_script(
+        "structure_build_cost.py",
+        tmp_path / "s.json",
+        "--data",
+        str(REDKITCHEN),
+        "--map-sizes",
+        "6",
+        "12",
+        "--real-frames",
+        "6",
+        "--queries",
+        "2",
+        "--threads",
+        "1",
+        "--map-dir",
+        str(tmp_path / "maps"),
+    )
+    assert report["complete"] and {"opencv", "poselib"} <= report["versions"].keys()
+    small, cycled = report["builds"]
+    assert (small["images"], small["distinct_frames"], small["views_per_frame"]) == (6, 6, 1)
+    assert (cycled["images"], cycled["distinct_frames"], cycled["views_per_frame"]) == (12, 6, 2)
+    for row in report["builds"]:
+        assert not row["extrapolated"] and row["measured_images"] == row["images"]
+        assert all(seconds > 0 for seconds in row["seconds"].values()), row["seconds"]
+        assert row["file_bytes"] > 0 and row["points"] > 0
+    # Repeated views are the same frames again: exactly twice the points.
+    assert cycled["points"] == 2 * small["points"]
+    query = report["query"]
+    assert query["queries"] == 2 and query["map_images"] == 6
+    assert all(query["median_ms"][part] > 0 for part in ("features", "matching", "total"))
