@@ -7,6 +7,7 @@ are described by the same engine. Training never goes through here: it is torch'
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,6 +19,11 @@ from relocfw.app.config_schema import name_of
 from relocfw.core.errors import ConfigError
 from relocfw.core.pipeline import Relocalizer
 from relocfw.model.onnx_engine import EngineOptions, EngineUnavailableError, onnx_engine
+
+
+def warn(line: str) -> None:
+    """Notes go to stderr, as the CLI's other notes do; results stay on stdout."""
+    print(line, file=sys.stderr)
 
 
 def engine_options(cfg: DictConfig) -> EngineOptions:
@@ -37,10 +43,11 @@ def wanted_engine(cfg: DictConfig, device: torch.device) -> str:
             f"engine=onnx runs the network with onnxruntime on the CPU, but device={device}: "
             "drop device (or use engine=torch, or engine=auto: torch on a GPU)"
         )
-    if engine == "torch" and options.int8 != "none" and name_of(cfg.engine) == "torch":
+    if engine == "torch" and options.int8 != "none":
+        why = "engine=torch" if name_of(cfg.engine) == "torch" else f"device={device}"
         raise ConfigError(
-            f"onnx.int8={options.int8} quantises the onnxruntime graphs, but engine=torch "
-            "(use engine=onnx)"
+            f"onnx.int8={options.int8} quantises the onnxruntime graphs, but the network "
+            f"runs on torch here ({why}): use engine=onnx on a CPU, or drop onnx.int8"
         )
     return engine
 
@@ -67,9 +74,9 @@ def on_engine(
         return relocalizer
     options = engine_options(cfg)
     try:
-        backbone = onnx_engine(relocalizer.backbone, owner, options, calibration)
+        backbone = onnx_engine(relocalizer.backbone, owner, options, calibration, say=warn)
     except EngineUnavailableError as error:
-        print(f"note: {error}; the network runs on torch (engine=torch silences this)")
+        warn(f"note: {error}; the network runs on torch (engine=torch silences this)")
         return relocalizer
     swapped = relocalizer.replace(backbone=backbone)
     if not bool(cfg.quiet):

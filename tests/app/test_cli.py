@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from relocfw.app import cli
-from relocfw.app.config_schema import Task
+from relocfw.app.config_schema import Task, name_of
 from relocfw.app.spellings import rewrite
 from relocfw.core.errors import ConfigError
 from tests.cli_runs import relocfw, relocfw_here
@@ -212,11 +212,19 @@ def test_a_refusal_ends_a_real_process_with_one_line_and_status_2(tmp_path, cach
         ),
         (["query.scoring=fancy"], "query.scoring=fancy: Invalid value 'fancy', expected one of"),
         (
+            ["task=localize", "engine=tf"],
+            "engine=tf: Invalid value 'tf', expected one of [auto, torch, onnx]",
+        ),
+        (  # the spelling before the engine: read as engine=tf (one note), then refused
             ["task=localize", "localize.backend=tf"],
-            "localize.backend=tf: Invalid value 'tf', expected one of [torch, onnx]",
+            "engine=tf: Invalid value 'tf', expected one of [auto, torch, onnx]",
+        ),
+        (
+            ["onnx.int8=int4"],
+            "onnx.int8=int4: Invalid value 'int4', expected one of [none, dynamic, static]",
         ),
     ],
-    ids=["type", "choice", "backend"],
+    ids=["type", "choice", "engine", "old backend", "int8 choice"],
 )
 def test_a_wrong_type_or_choice_fails_before_any_work_in_one_line(tmp_path, args, message):
     result = relocfw_here([*TINY_OVERRIDES, *args], tmp_path)
@@ -226,6 +234,27 @@ def test_a_wrong_type_or_choice_fails_before_any_work_in_one_line(tmp_path, args
     assert result.stdout == ""
     assert not (tmp_path / "cache").exists()  # nothing rendered, nothing trained
     assert not (tmp_path / "outputs").exists()  # not even a run directory
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (
+            ["engine=torch", "onnx.int8=static"],
+            "onnx.int8=static quantises the onnxruntime graphs, but engine=torch (use engine=onnx)",
+        ),
+        (["onnx.threads=0"], "onnx.threads must be >= 1 (null: every core), got 0"),
+    ],
+    ids=["int8 on torch", "no threads"],
+)
+def test_engine_options_that_cannot_apply_end_in_one_line_before_any_work(tmp_path, args, message):
+    """Checked with the device, first thing in every task (even one that never runs
+    the engine, such as training): a typo is refused, not ignored."""
+    result = relocfw_here([*TINY_OVERRIDES, *args], tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr == f"error: {message}\n"
+    assert result.stdout == ""
+    assert not (tmp_path / "cache").exists()  # nothing rendered, nothing trained
 
 
 def test_an_old_multirun_list_is_read_in_the_new_spelling(tmp_path):
@@ -252,11 +281,8 @@ def test_an_old_multirun_list_is_read_in_the_new_spelling(tmp_path):
         (["model=m"], "export", ["export.model=m"]),
         (["-m", "--config-name", "scoring"], None, ["-m", "--config-name", "scoring"]),
         (["pretrained_required=true"], None, ["train.pretrained_required=true"]),
-        (
-            ["images=a/*.png", "backend=onnx"],
-            None,
-            ["localize.images=a/*.png", "localize.backend=onnx"],
-        ),
+        (["images=a/*.png", "backend=onnx"], None, ["localize.images=a/*.png", "engine=onnx"]),
+        (["localize.backend=torch", "+backend=onnx"], None, ["engine=torch", "+engine=onnx"]),
         (["query.scoring=plain", "scoring_x=1"], None, ["query.scoring=plain", "scoring_x=1"]),
     ],
 )
@@ -353,18 +379,19 @@ def test_the_dispatch_table_runs_every_task():
 
 
 def test_the_main_job_has_no_option_outside_its_groups():
-    """The top level keeps task, seed, device, cache_dir, quiet and k; every other
-    option sits in a group (query., localize., ...)."""
+    """The top level keeps task, seed, device, engine, cache_dir, quiet and k; every
+    other option sits in a group (query., localize., onnx., ...)."""
     from hydra import compose, initialize_config_module
 
     with initialize_config_module(config_module="relocfw.conf", version_base="1.3"):
         cfg = compose("config")
     plain = {key for key, value in cfg.items() if not hasattr(value, "keys")}
-    assert plain == {"task", "seed", "device", "cache_dir", "quiet", "k"}
+    assert plain == {"task", "seed", "device", "engine", "cache_dir", "quiet", "k"}
     assert set(cfg) - plain == {
         *("backbone", "index", "crop", "refine", "dataset", "query", "localize", "export"),
-        *("relocalize", "compare", "diagnose", "train"),
+        *("relocalize", "compare", "diagnose", "train", "onnx"),
     }
+    assert (name_of(cfg.engine), name_of(cfg.onnx.int8)) == ("auto", "none")
     assert all(value is None for value in cfg.query.values())  # each task's default
 
 

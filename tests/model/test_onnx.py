@@ -1,8 +1,11 @@
-"""ONNX export (task=export) and the onnxruntime backend (task=localize localize.backend=onnx)."""
+"""ONNX export (task=export, the robots' network) and the onnxruntime engine as the
+CLI and scene images meet it (engine=onnx; tests/model/test_onnx_engine.py has the
+engine's own tests)."""
 
 import csv
 import importlib
 import re
+import sys
 from pathlib import Path
 
 import cv2
@@ -20,7 +23,8 @@ from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.model import onnx_export
 from relocfw.model.model_file import load_model, save_model
-from relocfw.model.onnx_backbone import OnnxBackbone, onnx_relocalizer
+from relocfw.model.onnx_backbone import OnnxBackbone
+from relocfw.model.onnx_engine import EngineOptions, EngineUnavailableError, onnx_engine
 from relocfw.model.onnx_export import export_onnx, onnx_path
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
@@ -117,16 +121,37 @@ def test_missing_packages_name_the_extra(tmp_path, monkeypatch):
     monkeypatch.setattr(onnx_export.importlib, "import_module", without_onnx)
     with pytest.raises(ConfigError, match=r'pip install "relocfw\[onnx\]"'):
         export_onnx(tiny_posenet(), tmp_path / "net.onnx")
-    with pytest.raises(ConfigError, match=r"backend=onnx needs the package 'onnxruntime'"):
-        OnnxBackbone(tmp_path / "net.onnx", tiny_posenet())
+    # The engine says which package it lacks (the CLI then runs torch, in one line).
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)
+    message = r"""engine=onnx needs 'onnxruntime' \(pip install "relocfw\[onnx\]"\)"""
+    with pytest.raises(EngineUnavailableError, match=message):
+        onnx_engine(tiny_posenet(), tmp_path / "net.pt")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
 
 
-def test_an_export_of_other_weights_is_refused(tmp_path):
-    export_onnx(tiny_posenet(seed=0), tmp_path / "net.onnx")
-    with pytest.raises(DataError, match="other weights"):
-        OnnxBackbone(tmp_path / "net.onnx", tiny_posenet(seed=1))
-    with pytest.raises(DataError, match="ONNX network not found"):
-        OnnxBackbone(tmp_path / "none.onnx", tiny_posenet())
+ONE_THREAD = EngineOptions(threads=1)
+
+
+def test_the_engine_rebuilds_a_graph_of_other_weights_and_exports_a_missing_one(tmp_path):
+    owner = tmp_path / "net.pt"
+    notes = []
+    onnx_engine(tiny_posenet(seed=0), owner, ONE_THREAD, say=notes.append)  # nothing cached
+    assert notes == []
+    full, maps = tmp_path / "net.pt.full.onnx", tmp_path / "net.pt.maps.onnx"
+    assert sorted(tmp_path.iterdir()) == [full, maps]
+    before = full.read_bytes()
+    engine = onnx_engine(tiny_posenet(seed=1), owner, ONE_THREAD, say=notes.append)
+    assert notes == [
+        f"note: rebuilding {full}: it was exported from other weights",
+        f"note: rebuilding {maps}: it was exported from other weights",
+    ]
+    assert full.read_bytes() != before
+    images = torch.rand(3, 3, 32, 32, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        want = tiny_posenet(seed=1)(images)
+        got = engine(images)
+    assert np.allclose(got.positions.numpy(), want.positions.numpy(), atol=TOLERANCE)
+    assert np.allclose(got.features.numpy(), want.features.numpy(), atol=TOLERANCE)
 
 
 @pytest.fixture
@@ -143,8 +168,7 @@ def test_onnx_backbone_gives_the_torch_crops_and_poses(tmp_path, scene_images):
         backbone, KMeansIndex(k=4), GeneticCropSearch(seed=0), QueryOptions(batch_size=5)
     )
     features = relocalizer.fit(train)
-    export_onnx(backbone, tmp_path / "net.onnx")
-    swapped = onnx_relocalizer(relocalizer, tmp_path / "net.onnx")
+    swapped = relocalizer.replace(backbone=onnx_engine(backbone, tmp_path / "net.pt", ONE_THREAD))
     assert isinstance(swapped.backbone, OnnxBackbone) and swapped.index is relocalizer.index
     assert swapped.crop_scale == pytest.approx(relocalizer.crop_scale)
     assert np.allclose(swapped.describe(train), features, atol=TOLERANCE)  # the map's view
@@ -158,16 +182,23 @@ def test_onnx_backbone_gives_the_torch_crops_and_poses(tmp_path, scene_images):
     assert [a.crop for a in together] == [relocalizer.localize(i).crop for i in test]
 
 
-def test_onnx_relocalizer_refuses_what_the_graph_cannot_do(tmp_path):
-    backbone = tiny_posenet()
-    export_onnx(backbone, tmp_path / "net.onnx")
-    shared = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop(), QueryOptions(scoring="shared"))
-    with pytest.raises(ConfigError, match="cannot use scoring=shared"):
-        onnx_relocalizer(shared, tmp_path / "net.onnx")
-    backbone.mc_samples = 4
-    sampled = Relocalizer(backbone, ExhaustiveIndex(), CentreCrop())
-    with pytest.raises(ConfigError, match="mc_samples=4"):
-        onnx_relocalizer(sampled, tmp_path / "net.onnx")
+def test_the_engine_runs_what_the_robots_graph_could_not(tmp_path, scene_images):
+    """Shared scoring and Monte Carlo dropout, refused by the old localize.backend=onnx,
+    run on the engine's maps graph and give torch's answers."""
+    train, test = scene_images
+    backbone = tiny_posenet(mc_samples=4, dropout_variant="kendall")
+    engine = onnx_engine(backbone, tmp_path / "net.pt", ONE_THREAD)
+    assert sorted(engine.sessions) == ["full", "maps"]
+    shared = Relocalizer(
+        backbone, ExhaustiveIndex(), GeneticCropSearch(seed=0), QueryOptions(scoring="shared")
+    )
+    shared.fit(train)
+    swapped = shared.replace(backbone=engine)
+    for image in test:
+        want, got = shared.localize(image), swapped.localize(image)
+        assert got.crop == want.crop
+        assert np.allclose(got.pose.position, want.pose.position, atol=TOLERANCE)
+        assert got.position_spread == pytest.approx(want.position_spread, abs=TOLERANCE)
 
 
 def test_export_task_says_monte_carlo_sampling_is_left_out(tmp_path, capsys):
@@ -185,15 +216,28 @@ def test_export_task_says_monte_carlo_sampling_is_left_out(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "mc_samples=3" in printed and "dropout-free" in printed
     assert onnx_path(model) == tmp_path / "model.relocfw.onnx" and onnx_path(model).is_file()
+    robots = onnx_path(model).read_bytes()
     cfg = OmegaConf.create(
         {
-            "localize": {"model": str(model), "backend": "onnx"},
+            "localize": {"model": str(model)},
             "query": {"scoring": "plain", "batch_size": 8},
             "export": {"out": None},
+            "engine": "onnx",
+            "onnx": {"threads": 1, "int8": "none", "spinning": False},
+            "quiet": True,
         }
     )
-    with pytest.raises(ConfigError, match="mc_samples=3"):  # ... but localize cannot sample
-        localize.load_for_localize(cfg, torch.device("cpu"))
+    # ... but the engine samples: its graphs (not the robot's) run the dropout-free part.
+    loaded = localize.load_for_localize(cfg, torch.device("cpu"))
+    assert isinstance(loaded.backbone, OnnxBackbone) and loaded.backbone.mc_samples == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "model.relocfw",
+        "model.relocfw.full.onnx",
+        "model.relocfw.maps.onnx",
+        "model.relocfw.onnx",
+    ]
+    assert onnx_path(model).read_bytes() == robots
+    assert capsys.readouterr().out == ""  # quiet, and nothing to note
 
 
 def saved_tiny_model(folder: Path) -> Path:
@@ -264,7 +308,23 @@ def localization_rows(run_dir):
         return list(csv.DictReader(stream))
 
 
-def test_cli_export_then_localize_with_onnxruntime(trained_model):
+def localize_run(trained_model, model, run_dir, *args):
+    home, _, images = trained_model
+    return relocfw(
+        [
+            "task=localize",
+            f"localize.model={model}",
+            f"localize.images={images}/*.color.png",
+            f"hydra.run.dir={run_dir}",
+            "quiet=true",
+            *args,
+        ],
+        home,
+        home / "cache",
+    )
+
+
+def test_cli_export_then_localize_on_either_engine(trained_model):
     home, model, images = trained_model
     # model= in the spelling before issue 21: task=export reads it as export.model.
     exported = relocfw(["task=export", f"model={model}"], home, home / "cache")
@@ -273,51 +333,76 @@ def test_cli_export_then_localize_with_onnxruntime(trained_model):
         f"note: model= is now export.model= (read as export.model={model})"
     ]
     assert f"ONNX network: {model}.onnx" in exported.stdout
+    robots = Path(f"{model}.onnx").read_bytes()
     runs = {}
-    for backend in ("torch", "onnx"):
-        runs[backend] = home / f"localize-{backend}"
-        result = relocfw(
-            [
-                "task=localize",
-                f"localize.model={model}",
-                f"localize.images={images}/*.color.png",
-                f"localize.backend={backend}",
-                f"hydra.run.dir={runs[backend]}",
-                "quiet=true",
-            ],
-            home,
-            home / "cache",
-        )
+    for engine in ("torch", "onnx"):
+        runs[engine] = home / f"localize-{engine}"
+        result = localize_run(trained_model, model, runs[engine], f"engine={engine}")
         assert result.returncode == 0, result.stderr
+        assert "note:" not in result.stdout + result.stderr  # the engine ran, no fallback
     torch_poses = np.loadtxt(runs["torch"] / "poses.txt")
     onnx_poses = np.loadtxt(runs["onnx"] / "poses.txt")
     assert torch_poses.shape == onnx_poses.shape == (4, 8)
     assert np.allclose(onnx_poses, torch_poses, atol=TOLERANCE)
     crops = [
-        [(r["crop_x"], r["crop_y"], r["crop_size"]) for r in localization_rows(runs[backend])]
-        for backend in ("torch", "onnx")
+        [(r["crop_x"], r["crop_y"], r["crop_size"]) for r in localization_rows(runs[engine])]
+        for engine in ("torch", "onnx")
     ]
     assert crops[0] == crops[1]
+    # The engine's graphs are cached beside the model file; the robot's export is not
+    # what it runs, and stays as task=export wrote it.
+    assert Path(f"{model}.full.onnx").is_file() and Path(f"{model}.maps.onnx").is_file()
+    assert Path(f"{model}.onnx").read_bytes() == robots
+
+
+def test_cli_localize_backend_is_read_as_engine_and_needs_no_export(trained_model, tmp_path):
+    """The old spelling runs the engine, with one note; shared scoring (which the old
+    backend refused) runs on it, and no task=export is needed first."""
+    home, model, images = trained_model
+    lone = tmp_path / "model.relocfw"  # a model file with nothing beside it
+    lone.write_bytes(model.read_bytes())
+    args = ["localize.backend=onnx", "query.scoring=shared"]
+    result = localize_run(trained_model, lone, tmp_path / "run", *args)
+    assert result.returncode == 0, result.stderr
+    assert result.stderr.splitlines() == [
+        "note: localize.backend= is now engine= (read as engine=onnx)"
+    ]
+    assert np.all(np.isfinite(np.loadtxt(tmp_path / "run" / "poses.txt")))
+    assert len(localization_rows(tmp_path / "run")) == 4
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "model.relocfw",
+        "model.relocfw.full.onnx",
+        "model.relocfw.maps.onnx",
+        "run",
+    ]
 
 
 @pytest.mark.parametrize(
     "args, message",
     [
-        (["localize.backend=onnx"], "run relocfw task=export export.model="),
         (
-            ["localize.backend=onnx", "query.scoring=shared"],
-            "backend=onnx cannot use scoring=shared",
+            ["engine=tensorrt"],
+            "engine=tensorrt: Invalid value 'tensorrt', expected one of [auto, torch, onnx]",
         ),
         (
-            ["localize.backend=tensorrt"],
-            "localize.backend=tensorrt: Invalid value 'tensorrt', expected one of [torch, onnx]",
+            ["onnx.int8=int4"],
+            "onnx.int8=int4: Invalid value 'int4', expected one of [none, dynamic, static]",
+        ),
+        (
+            ["engine=torch", "onnx.int8=dynamic"],
+            "onnx.int8=dynamic quantises the onnxruntime graphs, but engine=torch",
+        ),
+        (["onnx.threads=0"], "onnx.threads must be >= 1 (null: every core), got 0"),
+        (
+            ["engine=onnx", "onnx.int8=static"],
+            "onnx.int8=static calibrates on map images and none are at hand here",
         ),
     ],
-    ids=["no onnx file", "shared scoring", "unknown backend"],
+    ids=["unknown engine", "unknown int8", "int8 on torch", "no threads", "static, no map"],
 )
-def test_cli_bad_backend_inputs(trained_model, tmp_path, args, message):
+def test_cli_bad_engine_inputs(trained_model, tmp_path, args, message):
     home, model, images = trained_model
-    lone = tmp_path / "model.relocfw"  # a model file with no export beside it
+    lone = tmp_path / "model.relocfw"  # a model file with no graphs beside it
     lone.write_bytes(model.read_bytes())
     result = relocfw_here(
         ["task=localize", f"localize.model={lone}", f"localize.images={images}/*.color.png", *args],
@@ -326,6 +411,7 @@ def test_cli_bad_backend_inputs(trained_model, tmp_path, args, message):
     )
     assert result.returncode == 2, result.stdout
     assert message in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    assert not list(tmp_path.glob("*int8*"))
 
 
 def test_cli_export_onto_the_model_file_is_refused_in_one_line(trained_model, tmp_path):

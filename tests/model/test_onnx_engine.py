@@ -1,0 +1,516 @@
+"""engine=onnx (relocfw.model.onnx_engine): every query path answers as torch does,
+a cached graph that cannot serve is rebuilt, and torch runs, with one line saying
+why, when the engine cannot.
+
+The graphs of each tiny network are exported once for the module (`built`); tests
+that damage a cache work on copies of them.
+"""
+
+import logging
+import shutil
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from omegaconf import OmegaConf
+from torch import nn
+
+from relocfw.app.engines import on_engine, wanted_engine
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.pipeline import Relocalizer
+from relocfw.core.query_options import QueryOptions
+from relocfw.model import onnx_engine as engine_module
+from relocfw.model.model_file import load_model, save_model
+from relocfw.model.onnx_backbone import OnnxBackbone, trained_network
+from relocfw.model.onnx_engine import (
+    EngineOptions,
+    EngineUnavailableError,
+    graph_path,
+    onnx_engine,
+)
+from relocfw.model.onnx_export import WEIGHTS_KEY, weights_fingerprint
+from relocfw.model.onnx_graphs import KINDS, kinds_needed
+from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.plugins.exhaustive_index import ExhaustiveIndex
+from relocfw.plugins.ga_crop import GeneticCropSearch
+from relocfw.plugins.kmeans_index import KMeansIndex
+from relocfw.plugins.posenet import PoseNet
+from relocfw.plugins.sweep_crop import SweepCrop
+
+# relocfw imports neither package until it needs one, so the skips can follow the imports.
+onnx = pytest.importorskip("onnx", reason='onnx not installed (pip install "relocfw[onnx]")')
+pytest.importorskip("onnxruntime", reason='onnxruntime not installed ("relocfw[onnx]")')
+
+TOLERANCE = 1e-4
+VARIANTS = ("head", "kendall", "all")
+# One thread: the tests' networks are tiny, and the machine may be shared.
+ONE_THREAD = EngineOptions(threads=1)
+NETWORK = {"input_size": 64, "width": 0.25, "feature_dim": 32}
+
+
+def tiny_posenet(seed: int = 0, variant: str = "head") -> PoseNet:
+    torch.manual_seed(seed)
+    backbone = PoseNet(**NETWORK, dropout_variant=variant).eval()
+    # torch's default initialisation shrinks the maps to ~1e-5 by the last block, below
+    # what any check can tell apart; 0.8 of He's keeps them near 1 (and the "all"
+    # variant's samples, which double what dropout keeps at every block, near 10), so
+    # answers differ from image to image and from network to network.
+    with torch.no_grad():
+        for module in backbone.modules():
+            if isinstance(module, nn.Conv2d):
+                nn.init.kaiming_normal_(module.weight, nonlinearity="relu").mul_(0.8)
+    # A frame away from the origin, so the graphs' positions are mapped back too.
+    backbone.set_position_normalisation(np.array([1.0, -2.0, 3.0]), 2.5)
+    backbone.set_crop_scale(1.142857)  # > 1: crop_samples has room to draw windows
+    return backbone
+
+
+@dataclass(frozen=True)
+class Images:
+    map: list[np.ndarray]
+    queries: list[np.ndarray]
+
+
+@pytest.fixture(scope="module")
+def images() -> Images:
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 256, (60, 80, 3), dtype=np.uint8) for _ in range(8)]
+    return Images(frames[:6], frames[6:])
+
+
+@dataclass(frozen=True)
+class Built:
+    """A tiny network, its engine and the owner its graphs are cached beside."""
+
+    backbone: PoseNet
+    engine: OnnxBackbone
+    owner: Path
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """built(variant, seed): the network's engine, its graphs exported once a module."""
+    made = {}
+
+    def get(variant: str = "head", seed: int = 0) -> Built:
+        if (variant, seed) not in made:
+            owner = tmp_path_factory.mktemp(f"{variant}-{seed}") / "net.pt"
+            backbone = tiny_posenet(seed, variant)
+            notes = []
+            engine = onnx_engine(backbone, owner, ONE_THREAD, say=notes.append)
+            assert notes == []
+            made[variant, seed] = Built(backbone, engine, owner)
+        return made[variant, seed]
+
+    return get
+
+
+def cached_copy(net: Built, folder: Path) -> Path:
+    """A new owner in `folder` with copies of `net`'s cached graphs beside it."""
+    owner = folder / "net.pt"
+    for kind in kinds_needed(net.backbone):
+        shutil.copyfile(graph_path(net.owner, kind), graph_path(owner, kind))
+    return owner
+
+
+class CountedSession:
+    """An onnxruntime session that counts its runs (which graphs a query used)."""
+
+    def __init__(self, session) -> None:
+        self.session = session
+        self.runs = 0
+
+    def run(self, *args, **kwargs):
+        self.runs += 1
+        return self.session.run(*args, **kwargs)
+
+
+def count_runs(engine: OnnxBackbone, monkeypatch) -> dict[str, CountedSession]:
+    counted = {kind: CountedSession(session) for kind, session in engine.sessions.items()}
+    for kind, session in counted.items():
+        monkeypatch.setitem(engine.sessions, kind, session)
+    return counted
+
+
+def assert_same_answer(got, want) -> None:
+    assert got.crop == want.crop
+    assert got.evaluations == want.evaluations
+    np.testing.assert_allclose(got.pose.position, want.pose.position, rtol=0, atol=TOLERANCE)
+    np.testing.assert_allclose(got.pose.quaternion, want.pose.quaternion, rtol=0, atol=TOLERANCE)
+    # NaN (not sampled) matches NaN only. The orientation spread is compared in
+    # radians: it is the mean of 2 acos(|<q, mean>|), which at a spread of a few degrees
+    # magnifies the quaternions' float32 rounding (~3e-8) some 50 times, ~1e-4 degrees.
+    spreads = [got.position_spread, np.radians(got.orientation_spread_deg)]
+    wanted = [want.position_spread, np.radians(want.orientation_spread_deg)]
+    np.testing.assert_allclose(spreads, wanted, rtol=0, atol=TOLERANCE)
+
+
+def assert_answers_as_torch(backbone, engine, images, options=None, search=None) -> None:
+    """The engine's map and queries are torch's (GA search, shared scoring by default:
+    the full and maps graphs both answer)."""
+    options = options or QueryOptions(scoring="shared")
+    torch_way = Relocalizer(
+        backbone, KMeansIndex(k=3), search or GeneticCropSearch(seed=0), options
+    )
+    features = torch_way.fit(images.map)
+    engine_way = torch_way.replace(backbone=engine)
+    np.testing.assert_allclose(engine_way.describe(images.map), features, rtol=0, atol=TOLERANCE)
+    for image in images.queries:
+        assert_same_answer(engine_way.localize(image), torch_way.localize(image))
+
+
+# case -> (search, query options, backbone.mc_samples)
+PATHS = {
+    "plain centre": (CentreCrop, {}, 0),
+    "plain ga": (lambda: GeneticCropSearch(seed=0), {}, 0),
+    "plain sweep": (lambda: SweepCrop(stride=4), {}, 0),
+    "shared ga": (lambda: GeneticCropSearch(seed=0), {"scoring": "shared"}, 0),
+    "shared sweep": (lambda: SweepCrop(stride=4), {"scoring": "shared", "rerank": 2}, 0),
+    "crop samples": (CentreCrop, {"crop_samples": 3}, 0),
+    "mc": (CentreCrop, {}, 5),
+    "mc ga shared": (lambda: GeneticCropSearch(seed=0), {"scoring": "shared"}, 4),
+    "crop samples + mc": (lambda: GeneticCropSearch(seed=0), {"crop_samples": 3}, 4),
+}
+SAMPLED = ("mc", "mc ga shared", "crop samples + mc")
+QUERY_PATHS = [
+    pytest.param(variant, case, id=f"{variant}-{case}")
+    for case in PATHS
+    for variant in (VARIANTS if case in SAMPLED else ("head",))
+]
+
+
+@pytest.mark.parametrize(("variant", "case"), QUERY_PATHS)
+def test_each_query_path_answers_as_torch(built, images, monkeypatch, variant, case):
+    make_search, options, mc_samples = PATHS[case]
+    net = built(variant)
+    monkeypatch.setattr(net.backbone, "mc_samples", mc_samples)
+    torch_way = Relocalizer(net.backbone, KMeansIndex(k=3), make_search(), QueryOptions(**options))
+    features = torch_way.fit(images.map)
+    runs = count_runs(net.engine, monkeypatch)
+    engine_way = torch_way.replace(backbone=net.engine)
+    assert engine_way.index is torch_way.index
+    np.testing.assert_allclose(engine_way.describe(images.map), features, rtol=0, atol=TOLERANCE)
+    for image in images.queries:
+        want, got = torch_way.localize(image), engine_way.localize(image)
+        assert_same_answer(got, want)
+        if mc_samples or options.get("crop_samples"):
+            assert np.isfinite(got.position_spread) and got.orientation_spread_deg > 0
+    # The graphs answered (not the source's torch layers).
+    used = {kind for kind, session in runs.items() if session.runs}
+    assert "full" in used
+    if options.get("scoring") == "shared" or (mc_samples and variant != "all"):
+        assert "maps" in used
+    if mc_samples and variant == "all":
+        assert "lower" in used  # the layers below every dropout
+    assert net.backbone.mc_samples == mc_samples  # sampling put the count back
+
+
+def test_queries_localized_together_share_the_graphs_passes(built, images):
+    net = built("head")
+    torch_way = Relocalizer(net.backbone, KMeansIndex(k=3), GeneticCropSearch(seed=0))
+    torch_way.fit(images.map)
+    engine_way = torch_way.replace(backbone=net.engine)
+    together = engine_way.localize_many(images.queries, queries_at_once=2)
+    for got, image in zip(together, images.queries, strict=True):
+        assert_same_answer(got, torch_way.localize(image))
+
+
+@pytest.mark.parametrize("mc_samples", [0, 5], ids=["dropout-free", "mc"])
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_the_map_is_described_as_torch_describes_it(
+    built, images, monkeypatch, variant, mc_samples
+):
+    net = built(variant)
+    monkeypatch.setattr(net.backbone, "mc_samples", mc_samples)  # the map is dropout-free
+    torch_way = Relocalizer(net.backbone, ExhaustiveIndex(), CentreCrop())
+    want = torch_way.describe(images.map)
+    got = torch_way.replace(backbone=net.engine).describe(images.map)
+    assert got.shape == want.shape == (6, 32)
+    np.testing.assert_allclose(got, want, rtol=0, atol=TOLERANCE)
+
+
+@pytest.mark.parametrize(
+    ("variant", "kinds"),
+    [("head", ["full", "maps"]), ("kendall", ["full", "maps"]), ("all", ["full", "lower", "maps"])],
+)
+def test_the_graphs_a_variant_needs_are_cached_beside_the_owner(built, variant, kinds):
+    net = built(variant)
+    assert sorted(net.engine.sessions) == kinds
+    names = sorted(p.name for p in net.owner.parent.iterdir())
+    assert names == sorted(f"net.pt.{kind}.onnx" for kind in kinds)  # no temporary left
+    assert net.engine.source is net.backbone
+    assert net.engine.description.endswith("float32, 1 threads")
+    assert net.engine.description.startswith("onnxruntime ")
+
+
+def test_an_engine_of_an_engine_runs_the_same_source_from_the_cache(built):
+    net = built("head")
+    notes = []
+    again = onnx_engine(net.engine, net.owner, ONE_THREAD, say=notes.append)
+    assert notes == []
+    assert again.source is net.backbone and trained_network(again) is net.backbone
+
+
+def test_an_onnx_backbone_needs_the_full_graph(built):
+    net = built("head")
+    with pytest.raises(ValueError, match="full graph"):
+        OnnxBackbone(net.backbone, {"maps": net.engine.sessions["maps"]}, "maps only")
+
+
+def garbage(data: bytes, other: bytes) -> bytes:
+    return np.random.default_rng(0).integers(0, 256, len(data), dtype=np.uint8).tobytes()
+
+
+def garbled_weights(data: bytes, other: bytes) -> bytes:
+    """A span in the middle overwritten: the file still starts as a graph."""
+    middle, span = len(data) // 2, min(4096, len(data) // 4)
+    noise = np.random.default_rng(1).integers(0, 256, span, dtype=np.uint8).tobytes()
+    return data[:middle] + noise + data[middle + span :]
+
+
+def truncated(data: bytes, other: bytes) -> bytes:
+    return data[: len(data) // 2]
+
+
+def of_other_weights(data: bytes, other: bytes) -> bytes:
+    return other
+
+
+DAMAGES = {
+    "garbage": (garbage, "cannot be read"),
+    "garbled weights": (garbled_weights, "the {kind} graph's"),  # caught by the check
+    "truncated": (truncated, "cannot be read"),
+    "stale": (of_other_weights, "it was exported from other weights"),
+}
+
+
+@pytest.mark.parametrize("kind", ["full", "maps"])
+@pytest.mark.parametrize("damage", DAMAGES)
+def test_a_cached_graph_that_cannot_serve_is_rebuilt(built, images, tmp_path, damage, kind):
+    net, other = built("head"), built("head", seed=1)
+    owner = cached_copy(net, tmp_path)
+    path = graph_path(owner, KINDS[kind])
+    spoil, reason = DAMAGES[damage]
+    bad = spoil(path.read_bytes(), graph_path(other.owner, KINDS[kind]).read_bytes())
+    path.write_bytes(bad)
+    notes = []
+    engine = onnx_engine(net.backbone, owner, ONE_THREAD, say=notes.append)
+    (note,) = notes  # one note, for the spoilt graph only
+    assert note.startswith(f"note: rebuilding {path}: {reason.format(kind=kind)}")
+    assert path.read_bytes() != bad
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["net.pt.full.onnx", "net.pt.maps.onnx"]
+    assert_answers_as_torch(net.backbone, engine, images)
+    again = []  # the rebuilt file serves from now on
+    onnx_engine(net.backbone, owner, ONE_THREAD, say=again.append)
+    assert again == []
+
+
+@pytest.mark.parametrize("kind", ["full", "maps"])
+def test_a_graph_whose_metadata_lies_is_caught_by_its_answers(built, images, tmp_path, kind):
+    """Network B's fingerprint on network A's graph: only the check against torch on
+    seeded images can tell, and the file is rebuilt."""
+    net, other = built("head"), built("head", seed=1)
+    owner = cached_copy(net, tmp_path)
+    path = graph_path(owner, KINDS[kind])
+    graph = onnx.load(str(graph_path(other.owner, KINDS[kind])))
+    props = {prop.key: prop.value for prop in graph.metadata_props}
+    assert props[WEIGHTS_KEY] != weights_fingerprint(net.backbone)
+    props[WEIGHTS_KEY] = weights_fingerprint(net.backbone)
+    onnx.helper.set_model_props(graph, props)
+    onnx.save(graph, str(path))
+    lying = path.read_bytes()
+    notes = []
+    engine = onnx_engine(net.backbone, owner, ONE_THREAD, say=notes.append)
+    (note,) = notes
+    output = "positions" if kind == "full" else "maps"
+    assert note.startswith(
+        f"note: rebuilding {path}: the {kind} graph's {output} differ from torch's"
+    )
+    assert path.read_bytes() != lying
+    assert_answers_as_torch(net.backbone, engine, images)
+
+
+def engine_config(engine: str = "auto", int8: str = "none", quiet: bool = False, threads=1):
+    return OmegaConf.create(
+        {
+            "engine": engine,
+            "onnx": {"threads": threads, "int8": int8, "spinning": False},
+            "quiet": quiet,
+        }
+    )
+
+
+@pytest.mark.parametrize("package", ["onnxruntime", "onnx"])
+def test_without_the_packages_torch_runs_and_one_line_says_why(
+    tmp_path, monkeypatch, capsys, package
+):
+    monkeypatch.setitem(sys.modules, package, None)  # `import package` fails
+    relocalizer = Relocalizer(tiny_posenet(), ExhaustiveIndex(), CentreCrop())
+    with pytest.raises(EngineUnavailableError, match=rf"needs '{package}'.*relocfw\[onnx\]"):
+        onnx_engine(relocalizer.backbone, tmp_path / "net.pt", ONE_THREAD)
+    cfg = engine_config(threads=None)
+    assert on_engine(cfg, relocalizer, tmp_path / "net.pt", torch.device("cpu")) is relocalizer
+    printed = capsys.readouterr()
+    assert printed.out == ""  # notes go to stderr, with the CLI's other notes
+    (line,) = printed.err.splitlines()
+    assert line.startswith("note: ") and f"'{package}'" in line and "runs on torch" in line
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_graph_that_fails_the_torch_check_at_export_leaves_torch_running(
+    tmp_path, monkeypatch, capsys
+):
+    def disagree(session, network, kind):
+        raise DataError(f"the {kind.name} graph's positions differ from torch's (up to 1)")
+
+    # onnx_engine holds its own reference to onnx_graphs.largest_difference.
+    monkeypatch.setattr(engine_module, "largest_difference", disagree)
+    relocalizer = Relocalizer(tiny_posenet(), ExhaustiveIndex(), CentreCrop())
+    owner = tmp_path / "net.pt"
+    with pytest.raises(EngineUnavailableError, match="the full graph's positions differ"):
+        onnx_engine(relocalizer.backbone, owner, ONE_THREAD, say=pytest.fail)
+    assert on_engine(engine_config("onnx"), relocalizer, owner, torch.device("cpu")) is relocalizer
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line.startswith("note: the full graph's positions differ from torch's")
+    assert line.endswith("the network runs on torch (engine=torch silences this)")
+    assert list(tmp_path.iterdir()) == []  # a graph that failed its check is not cached
+
+
+@pytest.mark.parametrize("quiet", [False, True])
+def test_on_engine_swaps_the_network_and_keeps_the_map(built, images, capsys, quiet):
+    net = built("head")
+    relocalizer = Relocalizer(net.backbone, KMeansIndex(k=3), GeneticCropSearch(seed=0))
+    relocalizer.fit(images.map)
+    swapped = on_engine(engine_config(quiet=quiet), relocalizer, net.owner, torch.device("cpu"))
+    assert isinstance(swapped.backbone, OnnxBackbone) and swapped.backbone.source is net.backbone
+    assert swapped.index is relocalizer.index and swapped.search is relocalizer.search
+    printed = capsys.readouterr().out.splitlines()
+    assert printed == ([] if quiet else ["engine: " + swapped.backbone.description])
+    for image in images.queries:
+        assert_same_answer(swapped.localize(image), relocalizer.localize(image))
+    # engine=torch leaves the relocalizer as it is, writing and saying nothing.
+    assert on_engine(engine_config("torch"), relocalizer, None, torch.device("cpu")) is relocalizer
+    assert capsys.readouterr().out == ""
+
+
+@pytest.mark.parametrize(
+    ("engine", "int8", "device", "wanted"),
+    [
+        ("auto", "none", "cpu", "onnx"),
+        ("auto", "none", "cuda", "torch"),
+        ("auto", "dynamic", "cpu", "onnx"),
+        ("onnx", "static", "cpu", "onnx"),
+        ("torch", "none", "cpu", "torch"),
+        ("torch", "none", "cuda", "torch"),
+    ],
+)
+def test_wanted_engine(engine, int8, device, wanted):
+    assert wanted_engine(engine_config(engine, int8), torch.device(device)) == wanted
+
+
+@pytest.mark.parametrize(
+    ("engine", "int8", "threads", "device", "message"),
+    [
+        (
+            "onnx",
+            "none",
+            1,
+            "cuda",
+            "engine=onnx runs the network with onnxruntime on the CPU, but device=cuda",
+        ),
+        ("torch", "static", 1, "cpu", "onnx.int8=static quantises the onnxruntime graphs"),
+        ("torch", "dynamic", 1, "cpu", "onnx.int8=dynamic quantises the onnxruntime graphs"),
+        ("auto", "int4", 1, "cpu", "onnx.int8 must be one of none, dynamic, static, got 'int4'"),
+        ("torch", "none", 0, "cpu", "onnx.threads must be >= 1"),
+        ("auto", "static", 1, "cuda", r"runs on torch here \(device=cuda\)"),
+    ],
+    ids=[
+        "onnx on cuda",
+        "static on torch",
+        "dynamic on torch",
+        "unknown int8",
+        "no threads",
+        "int8 with auto on a GPU",
+    ],
+)
+def test_wanted_engine_refuses_options_that_cannot_apply(engine, int8, threads, device, message):
+    cfg = engine_config(engine, int8, threads=threads)
+    with pytest.raises(ConfigError, match=message):
+        wanted_engine(cfg, torch.device(device))
+
+
+def test_int8_dynamic_graphs_are_cached_and_answer(built, images, tmp_path, caplog):
+    net = built("head")
+    owner = cached_copy(net, tmp_path)  # the float graphs: only quantisation runs
+    notes = []
+    options = EngineOptions(threads=1, int8="dynamic")
+    caplog.set_level(logging.INFO)
+    engine = onnx_engine(net.backbone, owner, options, say=notes.append)
+    assert notes == []
+    # onnxruntime's quantisation logs a line per weight at INFO, which Hydra would print.
+    assert [r.getMessage() for r in caplog.records if r.levelno <= logging.INFO] == []
+    assert logging.root.manager.disable == logging.NOTSET  # put back
+    assert engine.description.endswith("int8 dynamic, 1 threads")
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "net.pt.full.int8-dynamic.onnx",
+        "net.pt.full.onnx",
+        "net.pt.maps.int8-dynamic.onnx",
+        "net.pt.maps.onnx",
+    ]
+    engine_way = Relocalizer(
+        engine, KMeansIndex(k=3), GeneticCropSearch(seed=0), QueryOptions(scoring="shared")
+    )
+    assert np.all(np.isfinite(engine_way.fit(images.map)))
+    for image in images.queries:
+        answer = engine_way.localize(image)
+        assert answer.evaluations > 1  # the search ran
+        assert np.all(np.isfinite(answer.pose.position))
+        assert np.all(np.isfinite(answer.pose.quaternion))
+
+
+def test_int8_static_calibrates_on_map_images_once(built, images, tmp_path):
+    net = built("head")
+    owner = cached_copy(net, tmp_path)
+    options = EngineOptions(threads=1, int8="static")
+    with pytest.raises(ConfigError, match="onnx.int8=static calibrates on map images"):
+        onnx_engine(net.backbone, owner, options, say=pytest.fail)
+    assert not list(tmp_path.glob("*int8*"))
+    engine = onnx_engine(net.backbone, owner, options, images.map, say=pytest.fail)
+    assert engine.description.endswith("int8 static, 1 threads")
+    static = sorted(tmp_path.glob("*.int8-static.onnx"))
+    assert [p.name for p in static] == [
+        "net.pt.full.int8-static.onnx",
+        "net.pt.maps.int8-static.onnx",
+    ]
+    written = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in static}
+    # Cached: no calibration images needed, nothing said, nothing written.
+    again = onnx_engine(net.backbone, owner, options, say=pytest.fail)
+    assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in static} == written
+    answer = Relocalizer(again, ExhaustiveIndex(), CentreCrop())
+    answer.fit(images.map)
+    assert np.all(np.isfinite(answer.localize(images.queries[0]).pose.position))
+
+
+def test_a_model_file_of_an_engine_relocalizer_holds_the_torch_network(built, images, tmp_path):
+    net = built("kendall")
+    torch_way = Relocalizer(net.backbone, KMeansIndex(k=3), GeneticCropSearch(seed=0))
+    torch_way.fit(images.map)
+    engine_way = torch_way.replace(backbone=net.engine)
+    options = {
+        "backbone": {**NETWORK, "dropout_variant": "kendall"},
+        "index": {"k": 3},
+        "crop": {"seed": 0},
+    }
+    path = save_model(tmp_path / "model.relocfw", engine_way, options, {})
+    loaded = load_model(path)
+    assert type(loaded.backbone) is PoseNet
+    want, got = net.backbone.state_dict(), loaded.backbone.state_dict()
+    assert list(got) == list(want)
+    for key in want:
+        assert torch.equal(got[key], want[key]), key
+    assert float(loaded.crop_scale) == pytest.approx(float(net.backbone.crop_scale))
+    for image in images.queries:
+        assert_same_answer(loaded.localize(image), engine_way.localize(image))
