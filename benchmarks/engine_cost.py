@@ -25,7 +25,6 @@ combination of torch threads, onnxruntime intra-op threads and thread spinning.
 from __future__ import annotations
 
 import argparse
-import itertools
 import os
 import platform
 import tempfile
@@ -196,10 +195,10 @@ def number(value: float | None) -> str:
     return "-" if value is None else f"{value:.2f}"
 
 
-def table(rows: list[dict], title: str) -> str:
+def table(rows: list[dict], title: str, reference: str = "torch") -> str:
     lines = [
         f"\n{title}",
-        "| method | engine | ms/query | x centre | x faster than torch | same crop "
+        f"| method | engine | ms/query | x centre | x faster than {reference} | same crop "
         "| max pos diff (m) |",
         "|---|---|---|---|---|---|---|",
     ]
@@ -230,30 +229,34 @@ def geometry_run(geometry: str, args: argparse.Namespace, folder: Path) -> list[
     return rows
 
 
-def threads_study(args: argparse.Namespace, folder: Path) -> list[dict]:
-    """centre and plain GA at the paper geometry under every thread setting."""
+def threads_study(args: argparse.Namespace, folder: Path) -> dict[str, list[dict]]:
+    """centre and plain GA at the paper geometry: torch's and onnxruntime's thread
+    counts in one round robin; then onnxruntime's thread spinning in a second one, on
+    its own, because spinning threads of one pair would slow the next pair down."""
     maps, _ = render_views(args.map_images, 0, *args.view_size)
     queries, _ = render_views(args.queries + args.warmup, -1, *args.view_size)
     cores = torch.get_num_threads()
     counts = sorted({1, cores})
-    pairs = []
+    threads, spinning = [], []
     for method in ("centre", "ga plain"):
         base = method_pipeline("paper", method, maps, args)
-        for threads in counts:
-            pairs.append(Pair(method, f"torch {threads}t", base, threads))
-        for threads, spinning in itertools.product(counts, (False, True)):
-            options = {"threads": threads, "spinning": spinning}
-            engine = f"onnx {threads}t{' spin' if spinning else ''}"
-            # torch's own threads stay at every core: the pipeline's small torch ops.
-            pairs.append(
-                Pair(method, engine, on_engine(base, "onnx", folder, maps, options), cores)
-            )
-    found = round_robin(pairs, queries, args.warmup)
-    torch.set_num_threads(cores)
-    engines = tuple(dict.fromkeys(p.engine for p in pairs))
-    rows = summary(found, (f"torch {cores}t", *engines))
-    print(table(rows, "thread settings, paper geometry"))
-    return rows
+        for count in counts:
+            threads.append(Pair(method, f"torch {count}t", base, count))
+            # torch keeps every core for the pipeline's small torch operations.
+            swapped = on_engine(base, "onnx", folder, maps, {"threads": count})
+            threads.append(Pair(method, f"onnx {count}t", swapped, cores))
+        for spin in (False, True):
+            swapped = on_engine(base, "onnx", folder, maps, {"spinning": spin})
+            spinning.append(Pair(method, f"onnx {cores}t{' spin' if spin else ''}", swapped))
+    report = {}
+    for name, pairs in (("threads", threads), ("spinning", spinning)):
+        found = round_robin(pairs, queries, args.warmup)
+        torch.set_num_threads(cores)
+        engines = tuple(dict.fromkeys(p.engine for p in pairs))
+        reference = f"torch {cores}t" if name == "threads" else engines[0]
+        report[name] = summary(found, (reference, *engines))
+        print(table(report[name], f"{name}, paper geometry", reference))
+    return report
 
 
 def main() -> None:

@@ -176,9 +176,13 @@ def test_engine_cost(tmp_path):
         "--view-size",
         "160",
         "120",
+        "--threads-study",
         "--methods",
         *methods,
     )
+    spinning = sorted({r["engine"] for r in report["threads"]["spinning"]})
+    assert len(spinning) == 2 and spinning[1] == spinning[0] + " spin"
+    assert {r["method"] for r in report["threads"]["threads"]} == {"centre", "ga plain"}
     rows = report["geometries"]["paper"]
     assert {(r["method"], r["engine"]) for r in rows} == {
         (m, e) for m in methods for e in ("torch", "onnx", "onnx-int8")

@@ -241,7 +241,8 @@ def test_a_wrong_type_or_choice_fails_before_any_work_in_one_line(tmp_path, args
     [
         (
             ["engine=torch", "onnx.int8=static"],
-            "onnx.int8=static quantises the onnxruntime graphs, but engine=torch (use engine=onnx)",
+            "onnx.int8=static quantises the onnxruntime graphs, but the network runs on torch "
+            "here (engine=torch): use engine=onnx on a CPU, or drop onnx.int8",
         ),
         (["onnx.threads=0"], "onnx.threads must be >= 1 (null: every core), got 0"),
     ],

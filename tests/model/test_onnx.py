@@ -390,7 +390,8 @@ def test_cli_localize_backend_is_read_as_engine_and_needs_no_export(trained_mode
         ),
         (
             ["engine=torch", "onnx.int8=dynamic"],
-            "onnx.int8=dynamic quantises the onnxruntime graphs, but engine=torch",
+            "onnx.int8=dynamic quantises the onnxruntime graphs, but the network runs on torch "
+            "here (engine=torch)",
         ),
         (["onnx.threads=0"], "onnx.threads must be >= 1 (null: every core), got 0"),
         (
