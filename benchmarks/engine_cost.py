@@ -25,6 +25,7 @@ combination of torch threads, onnxruntime intra-op threads and thread spinning.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import platform
 import tempfile
@@ -75,19 +76,47 @@ def network(
 
 
 class Autocast(Backbone):
-    """A CUDA backbone run under float16 autocast (AMP) at inference."""
+    """A CUDA backbone run under float16 autocast (AMP) at inference: every pass the
+    pipeline makes (plain, shared scoring's maps, Monte Carlo samples) goes through
+    the inner network's own methods, whose test-time options it shares."""
 
     def __init__(self, inner: Backbone) -> None:
         super().__init__()
         self.inner = inner
         self.input_size, self.feature_dim = inner.input_size, inner.feature_dim
         self.channels_last = inner.channels_last
+        self.test_time_options = tuple(inner.test_time_options)
         self.crop_scale.copy_(inner.crop_scale)
+
+    @property
+    def mc_samples(self) -> int:
+        return int(getattr(self.inner, "mc_samples", 0))
+
+    @mc_samples.setter
+    def mc_samples(self, samples: int) -> None:
+        self.inner.mc_samples = samples
+
+    @property
+    def shares_strip(self) -> bool:
+        return self.inner.shares_strip
 
     def forward(self, images: torch.Tensor) -> PoseOutput:
         with torch.autocast("cuda", dtype=torch.float16):
             out = self.inner(images)
-        return PoseOutput(out.positions.float(), out.quaternions.float(), out.features.float())
+        return dataclasses.replace(
+            out,
+            positions=out.positions.float(),
+            quaternions=out.quaternions.float(),
+            features=out.features.float(),
+        )
+
+    def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
+        with torch.autocast("cuda", dtype=torch.float16):
+            return self.inner.feature_maps(images).float()
+
+    def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
+        with torch.autocast("cuda", dtype=torch.float16):
+            return self.inner.describe_pooled(pooled).float()
 
 
 def on_engine(

@@ -7,8 +7,10 @@ are described by the same engine. Training never goes through here: it is torch'
 
 from __future__ import annotations
 
+import logging
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +18,17 @@ import torch
 from omegaconf import DictConfig
 
 from relocfw.app.config_schema import name_of
+from relocfw.core.atomic_files import atomic_write
 from relocfw.core.errors import ConfigError
 from relocfw.core.pipeline import Relocalizer
-from relocfw.model.onnx_engine import EngineOptions, EngineUnavailableError, onnx_engine
+from relocfw.model.onnx_backbone import OnnxBackbone
+from relocfw.model.onnx_engine import (
+    EngineOptions,
+    EngineUnavailableError,
+    graph_path,
+    onnx_engine,
+)
+from relocfw.model.onnx_graphs import KINDS
 
 
 def warn(line: str) -> None:
@@ -66,19 +76,54 @@ def on_engine(
             are cached beside it.
         calibration: map images, for onnx.int8=static.
 
-    With engine=onnx (or auto on a CPU) the graphs are exported or reused; when that
-    is not possible the run goes on with torch and one line says why. The returned
-    relocalizer shares the map, search and refiner of `relocalizer`.
+    With engine=auto on a CPU the graphs are exported or reused; when that is not
+    possible the run goes on with torch and one line says why. engine=onnx, or any
+    onnx.int8, was asked for by name: not getting it is a ConfigError, so a row
+    labelled int8 never reports torch's numbers. The returned relocalizer shares the
+    map, search and refiner of `relocalizer`.
     """
     if wanted_engine(cfg, device) == "torch":
         return relocalizer
     options = engine_options(cfg)
     try:
-        backbone = onnx_engine(relocalizer.backbone, owner, options, calibration, say=warn)
+        with quiet_quantisation():
+            backbone = onnx_engine(relocalizer.backbone, owner, options, calibration, say=warn)
     except EngineUnavailableError as error:
+        if name_of(cfg.engine) == "onnx" or options.int8 != "none":
+            asked = "engine=onnx" if options.int8 == "none" else f"onnx.int8={options.int8}"
+            message = f"{asked} cannot run: {error} (engine=auto falls back to torch)"
+            raise ConfigError(message) from error
         warn(f"note: {error}; the network runs on torch (engine=torch silences this)")
         return relocalizer
     swapped = relocalizer.replace(backbone=backbone)
     if not bool(cfg.quiet):
         print(f"engine: {backbone.description}")
     return swapped
+
+
+@contextmanager
+def quiet_quantisation() -> Iterator[None]:
+    """onnxruntime's quantiser logs every rescaled weight at INFO on the root logger,
+    which Hydra prints: hundreds of lines per graph. Warnings still show. Here, in the
+    CLI, because it changes the process's logging while it runs."""
+    previous = logging.root.manager.disable
+    logging.disable(logging.INFO)
+    try:
+        yield
+    finally:
+        logging.disable(previous)
+
+
+def keep_graphs_beside(relocalizer: Relocalizer, checkpoint: Path, model: Path) -> None:
+    """Copy the checkpoint's static int8 graphs (and the float graphs they were made
+    from) beside a model file, so task=localize can use them: they cannot be remade
+    there, having no map images to calibrate on."""
+    backbone = relocalizer.backbone
+    if not isinstance(backbone, OnnxBackbone) or backbone.int8 != "static":
+        return
+    for kind in backbone.sessions:
+        for mode in ("none", "static"):
+            source = graph_path(checkpoint, KINDS[kind], mode)
+            if source.is_file():
+                with atomic_write(graph_path(model, KINDS[kind], mode), "wb") as stream:
+                    stream.write(source.read_bytes())

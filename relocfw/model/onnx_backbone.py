@@ -33,18 +33,22 @@ class OnnxBackbone(Backbone):
         sessions: onnxruntime sessions by graph kind: "full" (required), "maps",
             "lower" (relocfw.model.onnx_graphs). A missing kind's passes run in torch.
         description: how the engine runs, for reports (e.g. "onnxruntime, 2 threads").
+        int8: the graphs' quantisation ("none", "dynamic", "static").
     """
 
     # Inputs cross to numpy as they are: NCHW contiguous is what the graphs expect.
     channels_last = False
 
-    def __init__(self, source: Backbone, sessions: Mapping[str, Any], description: str) -> None:
+    def __init__(
+        self, source: Backbone, sessions: Mapping[str, Any], description: str, int8: str = "none"
+    ) -> None:
         super().__init__()
         if "full" not in sessions:
             raise ValueError("OnnxBackbone needs the full graph's session")
         self.source = source.cpu().eval()
         self.sessions = dict(sessions)
         self.description = description
+        self.int8 = int8
         self.input_size = int(source.input_size)
         self.feature_dim = int(source.feature_dim)
         self.pretrained = bool(source.pretrained)

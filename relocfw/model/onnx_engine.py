@@ -2,26 +2,26 @@
 beside it, opened as an OnnxBackbone (relocfw.model.onnx_backbone).
 
 `onnx_engine(backbone, owner, options)` exports (or reuses) the graphs the backbone's
-queries need (relocfw.model.onnx_graphs.kinds_needed) as `OWNER.<kind>.onnx` beside
+queries need (relocfw.model.onnx_graphs.kinds_needed) as `OWNER-<kind>.onnx` beside
 the checkpoint or model file `owner`, checks every graph against torch on seeded
 images each time it is opened, and rebuilds a file that is unreadable, stale or
 wrong. When onnxruntime is missing or a graph cannot be made to match torch it raises
 EngineUnavailableError with the reason; the CLI then runs torch and says why in one line.
 
 Int8 (`EngineOptions.int8`): onnxruntime's quantisation of the float graphs, written
-as `OWNER.<kind>.int8-<mode>.onnx`. "static" calibrates activations on map images
-(training data, never queries) and needs them; "dynamic" quantises weights only.
+as `OWNER-<kind>.int8-<mode>.onnx`, tied to the float graph they were made from.
+"static" calibrates activations on map images (training data, never queries) and
+needs them; "dynamic" quantises weights only.
 Quantised graphs answer differently from torch by design, so they are checked for
-finite answers only; what they cost in accuracy is measured (docs/results/engine.md).
+finite answers only; what they cost in accuracy is measured (docs/engine.md).
 """
 
 from __future__ import annotations
 
-import logging
+import hashlib
 import os
 import tempfile
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -62,7 +62,11 @@ RECIPE_KEY = "relocfw.int8_recipe"
 # training frames (median 3.6 -> 1.8 cm, orientation 1.55 -> 0.77 deg), at the same
 # speed; percentile or entropy calibration, 128 images or float first / last layers
 # did not do better (docs/engine.md#int8).
-INT8_RECIPE = "qdq per-channel s8 reduce_range, u8 activations, minmax, 32 map images"
+INT8_RECIPES = {
+    "static": "qdq per-channel s8 reduce_range, u8 activations, minmax, 32 map images",
+    "dynamic": "dynamic s8 weights",
+}
+FLOAT_KEY = "relocfw.float_graph_sha256"  # the float graph an int8 one was made from
 CALIBRATION_IMAGES = 32  # map images static quantisation calibrates on (evenly spread)
 
 
@@ -97,23 +101,38 @@ class EngineOptions:
 
 
 def available_cores() -> int:
-    """The cores this process may run on (its CPU affinity), capped by OMP_NUM_THREADS
-    when that is set, as torch's own thread count is."""
+    """The cores this process may use: its CPU affinity, capped by a container's CPU
+    quota (cgroup v2 cpu.max, e.g. docker --cpus=2) and by OMP_NUM_THREADS when set,
+    as torch's own thread count is."""
     try:
         cores = len(os.sched_getaffinity(0))
     except AttributeError:  # macOS, Windows
         cores = os.cpu_count() or 1
+    quota = cgroup_cpu_quota()
+    if quota is not None:
+        cores = min(cores, quota)
     limit = os.environ.get("OMP_NUM_THREADS", "")
     if limit.isdigit() and int(limit) > 0:
         cores = min(cores, int(limit))
     return max(1, cores)
 
 
+def cgroup_cpu_quota(path: Path = Path("/sys/fs/cgroup/cpu.max")) -> int | None:
+    """Whole CPUs the cgroup may use ("200000 100000" -> 2), None when unlimited."""
+    try:
+        quota, period = path.read_text().split()[:2]
+        return None if quota == "max" else max(1, int(int(quota) // int(period)))
+    except (OSError, ValueError):
+        return None
+
+
 def graph_path(owner: Path, kind: GraphKind, int8: str = "none") -> Path:
     """Where the graph of `kind` of checkpoint / model file `owner` is cached."""
     suffix = "" if int8 == "none" else f".int8-{int8}"
     owner = Path(owner)
-    return owner.with_name(f"{owner.name}.{kind.name}{suffix}.onnx")
+    # "-", not ".": training removes its checkpoint's stale temporaries by the prefix
+    # ".KEY.pt.", which would match a graph's temporary named ".KEY.pt.full.onnx.*".
+    return owner.with_name(f"{owner.name}-{kind.name}{suffix}.onnx")
 
 
 def onnx_engine(
@@ -128,7 +147,7 @@ def onnx_engine(
     Args:
         backbone: the trained torch backbone (or an OnnxBackbone: its source is used).
         owner: the checkpoint or model file the weights come from; graphs are written
-            beside it as OWNER.<kind>.onnx.
+            beside it as OWNER-<kind>.onnx.
         calibration: map images (H x W x 3 uint8) for int8="static".
         say: where notes go (a rebuilt graph and why).
 
@@ -178,7 +197,55 @@ def onnx_engine(
         sessions[kind.name] = session
     precision = "float32" if options.int8 == "none" else f"int8 {options.int8}"
     description = f"onnxruntime {onnxruntime.__version__}, {precision}, {threads} threads"
-    return OnnxBackbone(source, sessions, description)
+    return OnnxBackbone(source, sessions, description, options.int8)
+
+
+def cached(
+    path: Path, open_session: Callable[[bytes | str], Any], why_not: Callable[[Any], str | None]
+) -> tuple[Any, bytes, str | None]:
+    """The cached graph at `path` if it serves: (session, bytes, None); else (None, b"",
+    why it cannot: None when there is no file)."""
+    if not path.is_file():
+        return None, b"", None
+    try:
+        data = path.read_bytes()
+        session = open_session(data)
+    except Exception as error:  # onnxruntime's own types for an unreadable file
+        return None, b"", f"it cannot be read ({type(error).__name__})"
+    try:
+        why = why_not(session)
+    except DataError as error:
+        why = str(error)
+    except Exception as error:  # a graph that loads but fails to run
+        why = f"it failed its check ({type(error).__name__}: {error})"
+    return (session, data, None) if why is None else (None, b"", why)
+
+
+def rebuilt(
+    path: Path,
+    build: Callable[[], tuple[Any, bytes]],
+    stale: str | None,
+    what: str,
+    say: Callable[[str], None],
+) -> tuple[Any, bytes]:
+    """A fresh graph from `build`, written over `path`; one note when it replaced a
+    `stale` file. EngineUnavailableError naming `path` when it cannot be built (the
+    unusable cached file is removed, so later runs do not read it again)."""
+    try:
+        session, data = build()
+    except Exception as error:  # the exporter's, quantiser's and onnxruntime's types
+        cause = str(error) if isinstance(error, DataError) else f"{type(error).__name__}: {error}"
+        if stale is not None:
+            path.unlink(missing_ok=True)
+            cause += f"; the cached file was unusable too ({stale}) and is removed"
+        raise EngineUnavailableError(f"{path}: {what} failed: {cause}") from error
+    try:
+        write_graph(data, path)
+    except OSError as error:
+        say(f"note: cannot cache {path} ({error.strerror}); the graph is kept in memory")
+    if stale is not None:
+        say(f"note: rebuilt {path}: {stale}")
+    return session, data
 
 
 def float_graph(
@@ -192,34 +259,24 @@ def float_graph(
     """The checked float graph of `kind`: the cached file, or a fresh export written
     over it. Returns the session and the graph's bytes (int8 starts from them)."""
     path = graph_path(owner, kind)
-    if path.is_file():
-        try:
-            data = path.read_bytes()
-            session = open_session(data)
-            stale = why_stale(session, kind, fingerprint)
-            if stale is None:
-                largest_difference(session, network, kind)
-                return session, data
-            say(f"note: rebuilding {path}: {stale}")
-        except DataError as error:
-            say(f"note: rebuilding {path}: {error}")
-        except Exception as error:  # onnxruntime's own types for an unreadable file
-            say(f"note: rebuilding {path}: cannot be read ({type(error).__name__})")
-    try:
+
+    def why_not(session: Any) -> str | None:
+        stale = why_stale(session, kind, fingerprint)
+        if stale is None:
+            largest_difference(session, network, kind)  # DataError when it differs
+        return stale
+
+    session, data, stale = cached(path, open_session, why_not)
+    if session is not None:
+        return session, data
+
+    def build() -> tuple[Any, bytes]:
         data = graph_bytes(network, kind, fingerprint, VERSION)
         session = open_session(data)
         largest_difference(session, network, kind)
-    except DataError as error:
-        raise EngineUnavailableError(str(error)) from error
-    except Exception as error:  # the exporter's and onnxruntime's many types
-        raise EngineUnavailableError(
-            f"the {kind.name} graph cannot be exported ({type(error).__name__}: {error})"
-        ) from error
-    try:
-        write_graph(data, path)
-    except OSError as error:
-        say(f"note: cannot cache {path} ({error.strerror}); the graph is kept in memory")
-    return session, data
+        return session, data
+
+    return rebuilt(path, build, stale, f"exporting the {kind.name} graph", say)
 
 
 def int8_graph(
@@ -233,46 +290,44 @@ def int8_graph(
     open_session: Callable[[bytes | str], Any],
     say: Callable[[str], None],
 ) -> Any:
-    """The int8 graph of `kind`: cached when its metadata matches, else quantised."""
+    """The int8 graph of `kind`: the cached file when it was quantised by today's
+    recipe from today's float graph, else quantised anew."""
     path = graph_path(owner, kind, mode)
-    if path.is_file():
-        try:
-            session = open_session(path.read_bytes())
-            metadata = graph_metadata(session)
-            stale = why_stale(session, kind, fingerprint)
-            if stale is None and metadata.get(INT8_KEY) != mode:
-                stale = f"it is int8 {metadata.get(INT8_KEY)!r}"
-            if stale is None and mode == "static" and metadata.get(RECIPE_KEY) != INT8_RECIPE:
-                stale = "it was quantised with another recipe"
-            if stale is None:
-                check_finite(session, network, kind)
-                return session
-            say(f"note: rebuilding {path}: {stale}")
-        except DataError as error:
-            say(f"note: rebuilding {path}: {error}")
-        except Exception as error:
-            say(f"note: rebuilding {path}: cannot be read ({type(error).__name__})")
+    source = hashlib.sha256(float_data).hexdigest()
+
+    def why_not(session: Any) -> str | None:
+        metadata = graph_metadata(session)
+        stale = why_stale(session, kind, fingerprint)
+        if stale is None and metadata.get(INT8_KEY) != mode:
+            stale = f"it is int8 {metadata.get(INT8_KEY)!r}"
+        if stale is None and metadata.get(RECIPE_KEY) != INT8_RECIPES[mode]:
+            stale = "it was quantised by another recipe"
+        if stale is None and metadata.get(FLOAT_KEY) != source:
+            stale = "it was quantised from another float graph"
+        if stale is None:
+            check_finite(session, network, kind)
+        return stale
+
+    session, _, stale = cached(path, open_session, why_not)
+    if session is not None:
+        return session
     if mode == "static" and not calibration:
         raise ConfigError(
-            f"onnx.int8=static calibrates on map images and none are at hand here ({path} "
-            "is not cached): build it with task=relocalize or task=compare, or use "
-            "onnx.int8=dynamic"
+            f"onnx.int8=static calibrates on map images, and none are at hand here to "
+            f"make {path}{f' ({stale})' if stale else ''}: run task=relocalize with "
+            "onnx.int8=static (it keeps the graphs beside the model file it writes), "
+            "or use onnx.int8=none"
         )
-    try:
+
+    def build() -> tuple[Any, bytes]:
         data = quantised(float_data, kind, mode, network, calibration, fingerprint)
         session = open_session(data)
         check_finite(session, network, kind)
-    except DataError as error:
-        raise EngineUnavailableError(str(error)) from error
-    except Exception as error:
-        raise EngineUnavailableError(
-            f"int8 {mode} quantisation of the {kind.name} graph failed "
-            f"({type(error).__name__}: {error})"
-        ) from error
-    try:
-        write_graph(data, path)
-    except OSError as error:
-        say(f"note: cannot cache {path} ({error.strerror}); the graph is kept in memory")
+        return session, data
+
+    session, _ = rebuilt(
+        path, build, stale, f"int8 {mode} quantisation of the {kind.name} graph", say
+    )
     return session
 
 
@@ -288,7 +343,7 @@ def quantised(
     import onnx
     from onnxruntime import quantization
 
-    with tempfile.TemporaryDirectory(prefix="relocfw-int8-") as folder, quiet_logging():
+    with tempfile.TemporaryDirectory(prefix="relocfw-int8-") as folder:
         source, prepared, target = (Path(folder) / n for n in ("f.onnx", "p.onnx", "q.onnx"))
         source.write_bytes(float_data)
         # Shape inference and graph clean-up first, as onnxruntime's docs advise.
@@ -318,23 +373,12 @@ def quantised(
             KIND_KEY: kind.name,
             FORMAT_KEY: GRAPH_FORMAT,
             INT8_KEY: mode,
-            RECIPE_KEY: INT8_RECIPE if mode == "static" else "",
+            RECIPE_KEY: INT8_RECIPES[mode],
+            FLOAT_KEY: hashlib.sha256(float_data).hexdigest(),
             "relocfw.version": VERSION,
         },
     )
     return graph.SerializeToString()
-
-
-@contextmanager
-def quiet_logging() -> Iterator[None]:
-    """onnxruntime's quantisation logs every rescaled weight at INFO on the root
-    logger, which Hydra prints: hundreds of lines per graph. Warnings still show."""
-    previous = logging.root.manager.disable
-    logging.disable(logging.INFO)
-    try:
-        yield
-    finally:
-        logging.disable(previous)
 
 
 class CalibrationImages:

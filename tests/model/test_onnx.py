@@ -137,13 +137,13 @@ def test_the_engine_rebuilds_a_graph_of_other_weights_and_exports_a_missing_one(
     notes = []
     onnx_engine(tiny_posenet(seed=0), owner, ONE_THREAD, say=notes.append)  # nothing cached
     assert notes == []
-    full, maps = tmp_path / "net.pt.full.onnx", tmp_path / "net.pt.maps.onnx"
+    full, maps = tmp_path / "net.pt-full.onnx", tmp_path / "net.pt-maps.onnx"
     assert sorted(tmp_path.iterdir()) == [full, maps]
     before = full.read_bytes()
     engine = onnx_engine(tiny_posenet(seed=1), owner, ONE_THREAD, say=notes.append)
     assert notes == [
-        f"note: rebuilding {full}: it was exported from other weights",
-        f"note: rebuilding {maps}: it was exported from other weights",
+        f"note: rebuilt {full}: it was exported from other weights",
+        f"note: rebuilt {maps}: it was exported from other weights",
     ]
     assert full.read_bytes() != before
     images = torch.rand(3, 3, 32, 32, generator=torch.Generator().manual_seed(2))
@@ -232,8 +232,8 @@ def test_export_task_says_monte_carlo_sampling_is_left_out(tmp_path, capsys):
     assert isinstance(loaded.backbone, OnnxBackbone) and loaded.backbone.mc_samples == 3
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "model.relocfw",
-        "model.relocfw.full.onnx",
-        "model.relocfw.maps.onnx",
+        "model.relocfw-full.onnx",
+        "model.relocfw-maps.onnx",
         "model.relocfw.onnx",
     ]
     assert onnx_path(model).read_bytes() == robots
@@ -351,7 +351,7 @@ def test_cli_export_then_localize_on_either_engine(trained_model):
     assert crops[0] == crops[1]
     # The engine's graphs are cached beside the model file; the robot's export is not
     # what it runs, and stays as task=export wrote it.
-    assert Path(f"{model}.full.onnx").is_file() and Path(f"{model}.maps.onnx").is_file()
+    assert Path(f"{model}-full.onnx").is_file() and Path(f"{model}-maps.onnx").is_file()
     assert Path(f"{model}.onnx").read_bytes() == robots
 
 
@@ -371,8 +371,8 @@ def test_cli_localize_backend_is_read_as_engine_and_needs_no_export(trained_mode
     assert len(localization_rows(tmp_path / "run")) == 4
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "model.relocfw",
-        "model.relocfw.full.onnx",
-        "model.relocfw.maps.onnx",
+        "model.relocfw-full.onnx",
+        "model.relocfw-maps.onnx",
         "run",
     ]
 
@@ -396,7 +396,7 @@ def test_cli_localize_backend_is_read_as_engine_and_needs_no_export(trained_mode
         (["onnx.threads=0"], "onnx.threads must be >= 1 (null: every core), got 0"),
         (
             ["engine=onnx", "onnx.int8=static"],
-            "onnx.int8=static calibrates on map images and none are at hand here",
+            "onnx.int8=static calibrates on map images, and none are at hand here",
         ),
     ],
     ids=["unknown engine", "unknown int8", "int8 on torch", "no threads", "static, no map"],

@@ -18,7 +18,12 @@ import torch
 from omegaconf import OmegaConf
 from torch import nn
 
-from relocfw.app.engines import on_engine, wanted_engine
+from relocfw.app.engines import (
+    keep_graphs_beside,
+    on_engine,
+    quiet_quantisation,
+    wanted_engine,
+)
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.query_options import QueryOptions
@@ -28,6 +33,7 @@ from relocfw.model.onnx_backbone import OnnxBackbone, trained_network
 from relocfw.model.onnx_engine import (
     EngineOptions,
     EngineUnavailableError,
+    cgroup_cpu_quota,
     graph_path,
     onnx_engine,
 )
@@ -240,7 +246,7 @@ def test_the_graphs_a_variant_needs_are_cached_beside_the_owner(built, variant, 
     net = built(variant)
     assert sorted(net.engine.sessions) == kinds
     names = sorted(p.name for p in net.owner.parent.iterdir())
-    assert names == sorted(f"net.pt.{kind}.onnx" for kind in kinds)  # no temporary left
+    assert names == sorted(f"net.pt-{kind}.onnx" for kind in kinds)  # no temporary left
     assert net.engine.source is net.backbone
     assert net.engine.description.endswith("float32, 1 threads")
     assert net.engine.description.startswith("onnxruntime ")
@@ -280,9 +286,9 @@ def of_other_weights(data: bytes, other: bytes) -> bytes:
 
 
 DAMAGES = {
-    "garbage": (garbage, "cannot be read"),
+    "garbage": (garbage, "it cannot be read"),
     "garbled weights": (garbled_weights, "the {kind} graph's"),  # caught by the check
-    "truncated": (truncated, "cannot be read"),
+    "truncated": (truncated, "it cannot be read"),
     "stale": (of_other_weights, "it was exported from other weights"),
 }
 
@@ -299,9 +305,9 @@ def test_a_cached_graph_that_cannot_serve_is_rebuilt(built, images, tmp_path, da
     notes = []
     engine = onnx_engine(net.backbone, owner, ONE_THREAD, say=notes.append)
     (note,) = notes  # one note, for the spoilt graph only
-    assert note.startswith(f"note: rebuilding {path}: {reason.format(kind=kind)}")
+    assert note.startswith(f"note: rebuilt {path}: {reason.format(kind=kind)}")
     assert path.read_bytes() != bad
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["net.pt.full.onnx", "net.pt.maps.onnx"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["net.pt-full.onnx", "net.pt-maps.onnx"]
     assert_answers_as_torch(net.backbone, engine, images)
     again = []  # the rebuilt file serves from now on
     onnx_engine(net.backbone, owner, ONE_THREAD, say=again.append)
@@ -326,9 +332,7 @@ def test_a_graph_whose_metadata_lies_is_caught_by_its_answers(built, images, tmp
     engine = onnx_engine(net.backbone, owner, ONE_THREAD, say=notes.append)
     (note,) = notes
     output = "positions" if kind == "full" else "maps"
-    assert note.startswith(
-        f"note: rebuilding {path}: the {kind} graph's {output} differ from torch's"
-    )
+    assert note.startswith(f"note: rebuilt {path}: the {kind} graph's {output} differ from torch's")
     assert path.read_bytes() != lying
     assert_answers_as_torch(net.backbone, engine, images)
 
@@ -372,11 +376,18 @@ def test_a_graph_that_fails_the_torch_check_at_export_leaves_torch_running(
     owner = tmp_path / "net.pt"
     with pytest.raises(EngineUnavailableError, match="the full graph's positions differ"):
         onnx_engine(relocalizer.backbone, owner, ONE_THREAD, say=pytest.fail)
-    assert on_engine(engine_config("onnx"), relocalizer, owner, torch.device("cpu")) is relocalizer
+    assert on_engine(engine_config("auto"), relocalizer, owner, torch.device("cpu")) is relocalizer
     (line,) = capsys.readouterr().err.splitlines()
-    assert line.startswith("note: the full graph's positions differ from torch's")
+    full = graph_path(owner, KINDS["full"])
+    assert line.startswith(
+        f"note: {full}: exporting the full graph failed: the full graph's positions differ"
+    )
     assert line.endswith("the network runs on torch (engine=torch silences this)")
     assert list(tmp_path.iterdir()) == []  # a graph that failed its check is not cached
+    # Asked for by name, the engine is not silently replaced: one error naming the file.
+    for engine, int8, asked in (("onnx", "none", "engine=onnx"), ("auto", "dynamic", "onnx.int8")):
+        with pytest.raises(ConfigError, match=rf"^{asked}.* cannot run: {full}: exporting"):
+            on_engine(engine_config(engine, int8), relocalizer, owner, torch.device("cpu"))
 
 
 @pytest.mark.parametrize("quiet", [False, True])
@@ -448,17 +459,19 @@ def test_int8_dynamic_graphs_are_cached_and_answer(built, images, tmp_path, capl
     notes = []
     options = EngineOptions(threads=1, int8="dynamic")
     caplog.set_level(logging.INFO)
-    engine = onnx_engine(net.backbone, owner, options, say=notes.append)
+    # onnxruntime's quantisation logs a line per weight at INFO, which Hydra would print;
+    # the CLI (relocfw.app.engines) silences it while the engine is built.
+    with quiet_quantisation():
+        engine = onnx_engine(net.backbone, owner, options, say=notes.append)
     assert notes == []
-    # onnxruntime's quantisation logs a line per weight at INFO, which Hydra would print.
     assert [r.getMessage() for r in caplog.records if r.levelno <= logging.INFO] == []
     assert logging.root.manager.disable == logging.NOTSET  # put back
     assert engine.description.endswith("int8 dynamic, 1 threads")
     assert sorted(p.name for p in tmp_path.iterdir()) == [
-        "net.pt.full.int8-dynamic.onnx",
-        "net.pt.full.onnx",
-        "net.pt.maps.int8-dynamic.onnx",
-        "net.pt.maps.onnx",
+        "net.pt-full.int8-dynamic.onnx",
+        "net.pt-full.onnx",
+        "net.pt-maps.int8-dynamic.onnx",
+        "net.pt-maps.onnx",
     ]
     engine_way = Relocalizer(
         engine, KMeansIndex(k=3), GeneticCropSearch(seed=0), QueryOptions(scoring="shared")
@@ -482,8 +495,8 @@ def test_int8_static_calibrates_on_map_images_once(built, images, tmp_path):
     assert engine.description.endswith("int8 static, 1 threads")
     static = sorted(tmp_path.glob("*.int8-static.onnx"))
     assert [p.name for p in static] == [
-        "net.pt.full.int8-static.onnx",
-        "net.pt.maps.int8-static.onnx",
+        "net.pt-full.int8-static.onnx",
+        "net.pt-maps.int8-static.onnx",
     ]
     written = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in static}
     # Cached: no calibration images needed, nothing said, nothing written.
@@ -492,6 +505,60 @@ def test_int8_static_calibrates_on_map_images_once(built, images, tmp_path):
     answer = Relocalizer(again, ExhaustiveIndex(), CentreCrop())
     answer.fit(images.map)
     assert np.all(np.isfinite(answer.localize(images.queries[0]).pose.position))
+
+
+def test_a_static_graph_is_remade_when_its_float_graph_changes(built, images, tmp_path):
+    net = built("head")
+    owner = cached_copy(net, tmp_path)
+    options = EngineOptions(threads=1, int8="static")
+    onnx_engine(net.backbone, owner, options, images.map, say=pytest.fail)
+    static = graph_path(owner, KINDS["full"], "static")
+    before = static.read_bytes()
+    # Another float graph of the same weights (as a new exporter would write): the
+    # int8 graph made from the old one must not serve it.
+    full = graph_path(owner, KINDS["full"])
+    graph = onnx.load(str(full))
+    graph.doc_string = "exported again"
+    onnx.save(graph, str(full))
+    notes = []
+    onnx_engine(net.backbone, owner, options, images.map, say=notes.append)
+    assert notes == [f"note: rebuilt {static}: it was quantised from another float graph"]
+    assert static.read_bytes() != before
+
+
+def test_relocalize_keeps_static_graphs_beside_the_model_file(built, images, tmp_path):
+    """task=localize has no map images to calibrate on: the model file's folder must
+    hold the static graphs task=relocalize made."""
+    net = built("head")
+    (tmp_path / "cache").mkdir()
+    checkpoint = cached_copy(net, tmp_path / "cache")
+    options = EngineOptions(threads=1, int8="static")
+    engine = onnx_engine(net.backbone, checkpoint, options, images.map, say=pytest.fail)
+    relocalizer = Relocalizer(engine, ExhaustiveIndex(), CentreCrop())
+    model = tmp_path / "run" / "model.relocfw"
+    model.parent.mkdir()
+    keep_graphs_beside(relocalizer, checkpoint, model)
+    beside = sorted(p.name for p in model.parent.iterdir())
+    assert beside == sorted(
+        f"model.relocfw-{kind}{mode}.onnx"
+        for kind in ("full", "maps")
+        for mode in ("", ".int8-static")
+    )
+    reused = onnx_engine(net.backbone, model, options, say=pytest.fail)  # no calibration
+    assert reused.int8 == "static"
+    # A float engine keeps nothing beside the model file: its graphs can be remade.
+    keep_graphs_beside(relocalizer.replace(backbone=net.engine), checkpoint, tmp_path / "m2")
+    assert not list(tmp_path.glob("m2*"))
+
+
+@pytest.mark.parametrize(
+    ("text", "cores"), [("200000 100000\n", 2), ("150000 100000", 1), ("max 100000", None)]
+)
+def test_a_container_cpu_quota_caps_the_threads(tmp_path, text, cores):
+    quota = tmp_path / "cpu.max"
+    quota.write_text(text)
+    assert cgroup_cpu_quota(quota) == cores
+    assert cgroup_cpu_quota(tmp_path / "absent") is None
 
 
 def test_a_model_file_of_an_engine_relocalizer_holds_the_torch_network(built, images, tmp_path):

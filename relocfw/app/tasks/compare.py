@@ -20,7 +20,7 @@ from hydra import compose
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from relocfw.app.engines import on_engine
+from relocfw.app.engines import on_engine, wanted_engine
 from relocfw.app.hydra_errors import COMPOSITION_ERRORS, one_line
 from relocfw.app.methods import build, build_method, scene_name
 from relocfw.app.results import run_method, safe_name, write_results
@@ -182,6 +182,11 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     crop_seeds = seed_list(cfg, "crop_seeds") or []
     quiet = bool(cfg.quiet)
     plans, rows = plan(methods, scenes, seeds)
+    for (_, _, name), (method_cfg, _) in plans.items():
+        try:  # a row's engine options, before any row trains
+            wanted_engine(method_cfg, device)
+        except ConfigError as error:
+            raise ConfigError(f"compare row {name!r}: {error}") from error
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     results = {seed: {} for seed in seeds}
     seed_runs = {seed: {} for seed in seeds}

@@ -11,7 +11,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from relocfw.app.config_schema import Baseline, name_of
-from relocfw.app.engines import on_engine
+from relocfw.app.engines import keep_graphs_beside, on_engine
 from relocfw.app.methods import centre_label, dataset_settings, scene_name
 from relocfw.app.results import Split, run_method, write_results
 from relocfw.app.splits import load_split, write_skipped
@@ -100,6 +100,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         "relocfw_version": VERSION,
     }
     model = save_model(done.run_dir / "model.relocfw", relocalizer, method.part_options, metadata)
+    keep_graphs_beside(relocalizer, done.checkpoint, model)
     print(
         f"model file: {model}  (relocfw task=localize localize.model={model} localize.images=...)"
     )
