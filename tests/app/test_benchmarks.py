@@ -231,3 +231,19 @@ def test_structure_build_cost(tmp_path):
     query = report["query"]
     assert query["queries"] == 2 and query["map_images"] == 6
     assert all(query["median_ms"][part] > 0 for part in ("features", "matching", "total"))
+
+
+def test_mc_sampled_part(tmp_path):
+    pytest.importorskip("onnxruntime", reason="relocfw[onnx] not installed")
+    report = run_script(
+        "mc_sampled_part.py",
+        tmp_path / "m.json",
+        "--samples",
+        "4",
+        "--repeats",
+        "1",
+        "--input-size",
+        "64",
+    )
+    assert [r["way"] for r in report["rows"]] == ["torch", "onnxruntime graph, masks as inputs"]
+    assert all(r["ms"] > 0 for r in report["rows"])
