@@ -43,7 +43,8 @@ def engine_options(cfg: DictConfig) -> EngineOptions:
 
 
 def wanted_engine(cfg: DictConfig, device: torch.device) -> str:
-    """ "torch" or "onnx" for this run; ConfigError for onnx options that cannot apply."""
+    """The engine this run uses, "torch" or "onnx"; ConfigError for onnx options that
+    cannot apply."""
     engine = name_of(cfg.engine)
     options = engine_options(cfg)  # checked whatever the engine: a bad value is a typo
     if engine == "auto":
