@@ -59,9 +59,9 @@ RECIPE_KEY = "relocfw.int8_recipe"
 # How static graphs are quantised; a cached graph of another recipe is rebuilt. 7-bit
 # weights (reduce_range): on CPUs without AVX-512 VNNI (AVX2's u8 x s8 products
 # saturate in 16 bits) they halved int8's pose deviation from float32 on Red Kitchen
-# training frames (median 3.6 -> 1.8 cm, orientation 1.55 -> 0.77 deg), at the same
-# speed; percentile or entropy calibration, 128 images or float first / last layers
-# did not do better (docs/engine.md#int8).
+# training frames (median 3.6 -> 1.8 cm, orientation 1.55 -> 0.77 deg); percentile
+# calibration, 128 images or float first / last layers gave 1.7-1.8 cm on top of it,
+# within the noise (docs/engine.md#int8).
 INT8_RECIPES = {
     "static": "qdq per-channel s8 reduce_range, u8 activations, minmax, 32 map images",
     "dynamic": "dynamic s8 weights",
