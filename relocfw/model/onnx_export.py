@@ -26,6 +26,7 @@ import importlib
 import inspect
 import io
 import warnings
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -165,7 +166,7 @@ def export_onnx(backbone: Backbone, path: Path) -> dict[str, float]:
     # eval() on the wrapper too: the exporter restores the wrapper's mode recursively
     # afterwards, and a wrapper left in training mode would switch dropout on below.
     pose_graph = PoseGraph(dropout_free_copy(backbone)).eval()
-    graph = onnx.load_from_string(trace(pose_graph))
+    graph = onnx.load_from_string(trace(pose_graph, int(pose_graph.backbone.input_size)))
     onnx.checker.check_model(graph)
     network = pose_graph.backbone
     size = int(network.input_size)
@@ -191,24 +192,40 @@ def export_onnx(backbone: Backbone, path: Path) -> dict[str, float]:
     return differences
 
 
-def trace(pose_graph: PoseGraph) -> bytes:
-    """The serialised ONNX graph of `pose_graph`, batch dimension dynamic."""
-    size = int(pose_graph.backbone.input_size)
-    traced_with = torch.rand(2, 3, size, size, generator=torch.Generator().manual_seed(0))
+def trace(
+    module: nn.Module,
+    input_size: int,
+    output_names: Sequence[str] = OUTPUT_NAMES,
+    dynamic_axes: Mapping[str, Mapping[int, str]] | None = None,
+    quiet_tracer: bool = False,
+) -> bytes:
+    """The serialised ONNX graph of `module` on images [B, 3, s, s], the batch dynamic
+    unless `dynamic_axes` (by input / output name) says more.
+
+    `quiet_tracer`: also silence the tracer's warnings about shapes read as Python
+    numbers, for a graph whose check at other sizes is what proves it right.
+    """
+    traced_with = torch.rand(
+        2, 3, input_size, input_size, generator=torch.Generator().manual_seed(0)
+    )
+    if dynamic_axes is None:
+        dynamic_axes = {name: {0: "batch"} for name in (INPUT_NAME, *output_names)}
     buffer = io.BytesIO()
     with torch.no_grad(), warnings.catch_warnings():
         # Known and harmless: the exporter's own deprecation (see the module docstring)
         # and EfficientNet's strided slices left unfolded; compare_with_torch is the test.
         for message in QUIET_WARNINGS:
             warnings.filterwarnings("ignore", message=message)
+        if quiet_tracer:
+            warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
         torch.onnx.export(
-            pose_graph,
+            module,
             (traced_with,),
             buffer,
             **LEGACY_EXPORTER,
             input_names=[INPUT_NAME],
-            output_names=list(OUTPUT_NAMES),
-            dynamic_axes={name: {0: "batch"} for name in (INPUT_NAME, *OUTPUT_NAMES)},
+            output_names=list(output_names),
+            dynamic_axes={name: dict(axes) for name, axes in dynamic_axes.items()},
             opset_version=OPSET,
             do_constant_folding=True,
         )

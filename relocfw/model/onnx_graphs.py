@@ -23,8 +23,6 @@ used.
 
 from __future__ import annotations
 
-import io
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,13 +37,11 @@ from relocfw.core.interfaces import Backbone
 from relocfw.model.dropout_backbone import DropoutBackbone
 from relocfw.model.onnx_export import (
     INPUT_NAME,
-    LEGACY_EXPORTER,
-    OPSET,
     OUTPUT_NAMES,
-    QUIET_WARNINGS,
     WEIGHTS_KEY,
     PoseGraph,
     require,
+    trace,
 )
 
 KIND_KEY = "relocfw.engine_graph"
@@ -59,26 +55,17 @@ MAPS_OUTPUT = "maps"
 ENGINE_TOLERANCE = 1e-4
 
 
-class MapsGraph(nn.Module):
-    """images of any size -> the trunk's last maps (Backbone.feature_maps)."""
+class PartGraph(nn.Module):
+    """images -> one of the backbone's maps methods (`feature_maps`: the trunk's last
+    maps; `lower_maps`: the layers below every dropout), as a module to trace."""
 
-    def __init__(self, backbone: Backbone) -> None:
+    def __init__(self, backbone: Backbone, method: str) -> None:
         super().__init__()
         self.backbone = backbone
+        self.method = method
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return self.backbone.feature_maps(images)
-
-
-class LowerGraph(nn.Module):
-    """images -> the layers below every dropout (DropoutBackbone.lower_maps)."""
-
-    def __init__(self, backbone: DropoutBackbone) -> None:
-        super().__init__()
-        self.backbone = backbone
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return self.backbone.lower_maps(images)
+        return getattr(self.backbone, self.method)(images)
 
 
 @dataclass(frozen=True)
@@ -92,9 +79,7 @@ class GraphKind:
     def module(self, network: Backbone) -> nn.Module:
         if self.name == "full":
             return PoseGraph(network)
-        if self.name == "maps":
-            return MapsGraph(network)
-        return LowerGraph(network)
+        return PartGraph(network, "feature_maps" if self.name == "maps" else "lower_maps")
 
     def check_sizes(self, side: int) -> list[tuple[int, int]]:
         """(height, width) of the check images: a landscape and a portrait strip too
@@ -125,32 +110,20 @@ def kinds_needed(backbone: Backbone) -> list[GraphKind]:
 def graph_bytes(network: Backbone, kind: GraphKind, fingerprint: str, version: str) -> bytes:
     """The serialised, checked graph of one part of `network` (a dropout-free copy)."""
     onnx = require("onnx", "engine=onnx")
-    module = kind.module(network).eval()
-    side = int(network.input_size)
-    example = torch.rand(2, 3, side, side, generator=torch.Generator().manual_seed(0))
     dynamic = {0: "batch", 2: "height", 3: "width"} if kind.any_size else {0: "batch"}
     axes = {INPUT_NAME: dynamic}
     for name in kind.outputs:  # poses per image; maps as big as the image
         axes[name] = {0: "batch"} if name in OUTPUT_NAMES else dynamic
-    buffer = io.BytesIO()
-    with torch.no_grad(), warnings.catch_warnings():
-        for message in QUIET_WARNINGS:
-            warnings.filterwarnings("ignore", message=message)
-        # Tracer warnings about shapes read as Python numbers: the check on other
-        # sizes below is what proves the graph right at every size.
-        warnings.filterwarnings("ignore", category=torch.jit.TracerWarning)
-        torch.onnx.export(
-            module,
-            (example,),
-            buffer,
-            **LEGACY_EXPORTER,
-            input_names=[INPUT_NAME],
-            output_names=list(kind.outputs),
-            dynamic_axes=axes,
-            opset_version=OPSET,
-            do_constant_folding=True,
-        )
-    graph = onnx.load_from_string(buffer.getvalue())
+    # Tracer warnings about shapes read as Python numbers: the check on other sizes
+    # (largest_difference) is what proves the graph right at every size.
+    data = trace(
+        kind.module(network).eval(),
+        int(network.input_size),
+        kind.outputs,
+        axes,
+        quiet_tracer=True,
+    )
+    graph = onnx.load_from_string(data)
     onnx.checker.check_model(graph)
     onnx.helper.set_model_props(
         graph,
