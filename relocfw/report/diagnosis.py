@@ -23,6 +23,7 @@ from scipy import stats
 from relocfw.core.geometry import orientation_error_deg, position_error
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.progress import Progress
+from relocfw.core.standardise import ZScore, k_nearest
 from relocfw.core.values import Pose
 from relocfw.data.frames import Frame
 from relocfw.report.statistics import spearman
@@ -46,6 +47,12 @@ class QueryWindows:
     orientation_errors: np.ndarray  # [n] degrees, inf for a non-finite pose
     centre: int  # entry of the centre crop, the window crop=centre uses
     windows: int  # distinct network inputs scored (offsets may share a window)
+    # What a selection rule may use (relocfw.core.window_rules), and the truth:
+    positions: np.ndarray | None = None  # [n, 3] each crop's regressed position
+    quaternions: np.ndarray | None = None  # [n, 4] and orientation (w, x, y, z)
+    neighbours: np.ndarray | None = None  # [n, K] its nearest map images (by descriptor)
+    distance_scale: float = float("nan")  # the map images' median map distance
+    truth: Pose | None = None
 
     @property
     def offsets(self) -> np.ndarray:
@@ -80,11 +87,27 @@ def pose_errors(
     return position, orientation
 
 
+class MapNeighbours:
+    """Each window's nearest map images by descriptor, exactly, whatever the index:
+    descriptors standardised as the indexes standardise them (relocfw.core.standardise),
+    then Euclidean nearest neighbours."""
+
+    def __init__(self, map_features: np.ndarray, count: int) -> None:
+        self.standardise = ZScore().fit(map_features)
+        self.points = self.standardise(map_features)
+        self.count = count
+
+    def __call__(self, features: np.ndarray) -> np.ndarray:
+        return k_nearest(self.standardise(features), self.points, self.count)[1]
+
+
 def diagnose(
     relocalizer: Relocalizer,
     frames: Sequence[Frame],
     images: Sequence[np.ndarray],
     quiet: bool = True,
+    map_features: np.ndarray | None = None,
+    neighbours: int = 5,
 ) -> tuple[QueryWindows, ...]:
     """Every crop offset of every query, scored by a fitted Relocalizer.
 
@@ -93,7 +116,14 @@ def diagnose(
         frames: the queries' ground truth, aligned with `images`.
         images: RGB uint8 query images.
         quiet: no progress bar.
+        map_features: the map images' descriptors (what `Relocalizer.fit` returned):
+            with them each window also gets its `neighbours` nearest map images, and
+            every query the map's `distance_scale`.
     """
+    finder, scale = None, float("nan")
+    if map_features is not None:
+        finder = MapNeighbours(map_features, neighbours)
+        scale = float(np.median(relocalizer.scorer.map_distance(map_features)))
     progress = Progress(len(images), "scoring every crop offset", quiet=quiet)
     queries = []
     for frame, image in zip(frames, images, strict=True):
@@ -109,6 +139,11 @@ def diagnose(
                 orientation_errors=orientation,
                 centre=scores.centre,
                 windows=scores.windows,
+                positions=scores.positions,
+                quaternions=scores.quaternions,
+                neighbours=None if finder is None else finder(scores.features),
+                distance_scale=scale,
+                truth=frame.pose,
             )
         )
         progress.advance()

@@ -34,6 +34,7 @@ class WindowScores:
     distances: np.ndarray  # [n] map distance of each window's descriptor
     positions: np.ndarray  # [n, 3] the pose answered were that crop chosen
     quaternions: np.ndarray  # [n, 4]
+    features: np.ndarray  # [n, D] each window's descriptor (before the map's standardising)
     centre: int  # the entry of the centre crop (crop=centre, and the map's descriptors)
     windows: int  # distinct windows, i.e. network inputs run: offsets may share one
     scale: float  # strip pixels per original image pixel
@@ -67,11 +68,12 @@ def score_windows(relocalizer: Relocalizer, image: np.ndarray) -> WindowScores:
     crops = tuple(crop_at(offset, strip.width, strip.height) for offset in range(span + 1))
     corners = [strip.window(c) for c in crops]
     distinct = list(dict.fromkeys(corners))
-    distances, positions, quaternions = [], [], []
+    distances, positions, quaternions, features = [], [], [], []
     for start in range(0, len(distinct), scorer.batch_size):
         chunk_distances, answers = scorer.plain(strip, distinct[start : start + scorer.batch_size])
         poses = [relocalizer.pose_of(answers.row(i)) for i in range(len(chunk_distances))]
         distances.append(np.asarray(chunk_distances, dtype=np.float64))
+        features.append(np.asarray(answers.features, dtype=np.float64))
         positions += [p.position for p in poses]
         quaternions += [p.quaternion for p in poses]
     where = {corner: i for i, corner in enumerate(distinct)}
@@ -82,6 +84,7 @@ def score_windows(relocalizer: Relocalizer, image: np.ndarray) -> WindowScores:
         distances=np.concatenate(distances)[index],
         positions=np.stack(positions)[index],
         quaternions=np.stack(quaternions)[index],
+        features=np.concatenate(features)[index],
         centre=crops.index(strip.centre_crop()),
         windows=len(distinct),
         scale=float(strip.scale),

@@ -40,6 +40,7 @@ from relocfw.report.units import (
     text_note,
     unit_of,
 )
+from relocfw.report.window_recording import save_windows
 
 CHOICE_NAMES = {
     "centre": "centre crop",
@@ -201,7 +202,8 @@ def write_diagnosis(
     print("\n" + markdown)
     print(
         f"diagnosis: {run_dir / 'diagnose.md'}, {run_dir / 'diagnose.json'}, "
-        f"{run_dir / 'diagnose_windows.csv'}; figures: {len(written)} PNG in {run_dir}"
+        f"{run_dir / 'diagnose_windows.csv'}, {run_dir / 'diagnose_windows.npz'}; "
+        f"figures: {len(written)} PNG in {run_dir}"
     )
     if unit.note:
         print(f"note: {unit.note}")
@@ -220,14 +222,16 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     write_skipped(done.dataset, done.run_dir)
     method = done.method
     relocalizer = on_engine(cfg, method.relocalizer(device), done.checkpoint, device, done.train[1])
-    relocalizer.fit(done.train[1], [f.pose for f in done.train[0]], quiet=quiet)
+    map_poses = [f.pose for f in done.train[0]]
+    map_features = relocalizer.fit(done.train[1], map_poses, quiet=quiet)
     refine = choices.get("refine", "none")
     if refine != "none":
         print(
             f"note: task=diagnose scores every window by the network's pose; refine={refine} "
             "answers for a chosen crop only and is not applied per window"
         )
-    queries = diagnose(relocalizer, *test, quiet=quiet)
+    queries = diagnose(relocalizer, *test, quiet=quiet, map_features=map_features)
+    save_windows(done.run_dir / "diagnose_windows.npz", queries, map_poses)
     settings = {
         "crops": "every offset at stride 1 (the configured crop search is not used)",
         "backbone": choices["backbone"],
