@@ -28,6 +28,36 @@ one loop, their crops in merged forward passes (`CropSearch.propose`).
 """
 
 
+class CropScores(np.ndarray):
+    """What a search that sees answers (`CropSearch.sees_answers`) is sent for n crops:
+    their [n] distances, as the array itself, so it reads like any other search's
+    values, with each crop's network answer beside them.
+
+    Attributes:
+        positions: [n, 3] each crop's regressed position.
+        quaternions: [n, 4] its orientation (w, x, y, z).
+        features: [n, D] its dropout-free descriptor (comparable with the map's).
+    """
+
+    positions: np.ndarray
+    quaternions: np.ndarray
+    features: np.ndarray
+
+    @classmethod
+    def of(
+        cls,
+        distances: np.ndarray,
+        positions: np.ndarray,
+        quaternions: np.ndarray,
+        features: np.ndarray,
+    ) -> CropScores:
+        scores = np.asarray(distances, dtype=np.float64).view(cls)
+        scores.positions = np.asarray(positions, dtype=np.float64)
+        scores.quaternions = np.asarray(quaternions, dtype=np.float64)
+        scores.features = np.asarray(features, dtype=np.float64)
+        return scores
+
+
 def query_seed(distance: CropDistance) -> int:
     """Seed material of the query being searched, for searches that draw random numbers.
 
@@ -199,6 +229,26 @@ class CropSearch(ABC):  # noqa: B024 - one of two methods, checked in __new__
         >>> LeftEdge().search(8, 4, lambda crops: np.zeros(len(crops)))
         Crop(x=0, y=0, size=4)
     """
+
+    # True for a search that chooses by what the network answers for each crop, not by
+    # distance alone (e.g. agreement of poses): it is sent CropScores. It needs every
+    # crop's answer, so it runs with plain scoring only.
+    sees_answers: ClassVar[bool] = False
+    # True for a search that needs the map itself: `fit_map` is then called by
+    # Relocalizer.fit with the map images' descriptors and poses.
+    wants_map: ClassVar[bool] = False
+
+    def fit_map(  # noqa: B027 - optional hook, no-op default
+        self, descriptors: np.ndarray, poses: Sequence[object], distance_scale: float
+    ) -> None:
+        """Learn what the search needs of the map (searches with `wants_map`).
+
+        Args:
+            descriptors: [N, D] the map images' centre-crop descriptors.
+            poses: their relocfw Poses, in the same order.
+            distance_scale: the map images' own median map distance, a unit that makes
+                distances comparable across models.
+        """
 
     def __new__(cls, *args: object, **kwargs: object) -> CropSearch:
         if cls.propose is CropSearch.propose and cls.search is CropSearch.search:

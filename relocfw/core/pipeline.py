@@ -123,6 +123,11 @@ class Relocalizer:
             raise ConfigError(f"options must be a QueryOptions, got {type(options).__name__}")
         self.scorer = Scorer(backbone, index, device, options.batch_size)
         check_options(options, backbone, index, self.scorer.crop_scale, refiner)
+        if search.sees_answers and options.scoring != "plain":
+            raise ConfigError(
+                f"the crop search {type(search).__name__} chooses by every crop's network "
+                f"answer, which scoring={options.scoring} does not compute: use scoring=plain"
+            )
         self.options = options
         self.search = search
         self.refiner = refiner
@@ -209,6 +214,14 @@ class Relocalizer:
         features = self.describe(images, quiet=quiet)
         self.index.fit(features)
         self.map_poses = list(poses) if poses is not None else []
+        if self.search.wants_map:
+            if len(self.map_poses) != len(images):
+                raise DataError(
+                    f"the crop search {type(self.search).__name__} needs the pose of every "
+                    "map image: fit(images, poses)"
+                )
+            scale = self.scorer.distance_scale(features)
+            self.search.fit_map(features, self.map_poses, scale)
         if self.refiner is not None:
             views = map_images(images, self.map_poses, frames)
             self.refiner.fit(views, features, quiet=quiet)

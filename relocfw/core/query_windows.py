@@ -14,7 +14,7 @@ from functools import cached_property
 import numpy as np
 
 from relocfw.core.imaging import image_fingerprint
-from relocfw.core.interfaces import SearchQuery
+from relocfw.core.interfaces import CropScores, SearchQuery
 from relocfw.core.network_answers import NetworkAnswers
 from relocfw.core.scorer import Corner, Scorer
 from relocfw.core.values import Crop
@@ -89,6 +89,16 @@ class QueryWindows:
         if self.scoring == "shared":
             return np.array([self.shared[c] for c in corners])
         return np.array([self.plain[c][0] for c in corners])
+
+    def scores(self, corners: Sequence[Corner]) -> CropScores:
+        """Plain windows' distances with their answers (`CropSearch.sees_answers`)."""
+        answers = [self.plain[c] for c in corners]
+        return CropScores.of(
+            np.array([distance for distance, _ in answers]),
+            np.stack([a.positions for _, a in answers]),
+            np.stack([a.quaternions for _, a in answers]),
+            np.stack([a.features for _, a in answers]),
+        )
 
     def __call__(self, crops: Sequence[Crop]) -> np.ndarray:
         corners = self.corners(crops)

@@ -22,6 +22,7 @@ from relocfw.core.interfaces import Backbone, SimilarityIndex
 from relocfw.core.network_answers import NetworkAnswers, as_numpy
 from relocfw.core.progress import Progress
 from relocfw.core.sampling import monte_carlo, sample_share
+from relocfw.core.standardise import ZScore, k_nearest
 from relocfw.core.window_pooling import StripMaps
 
 Corner = tuple[int, int]  # (y, x) of a window's top-left corner in its strip
@@ -115,6 +116,19 @@ class Scorer:
         """
         with self.one_blas_thread():
             return self.index.distance(features)
+
+    def distance_scale(self, features: np.ndarray) -> float:
+        """A unit for map distances that is comparable across models: the map images'
+        own median map distance. An index that holds the images themselves (exhaustive)
+        gives them 0; then the median distance from each map image to its nearest other
+        one (standardised, as the indexes measure), and 1 if even that is 0."""
+        own = float(np.median(self.map_distance(features)))
+        if own > 0:
+            return own
+        points = ZScore().fit(features)(features)
+        others = k_nearest(points, points, 2)[0][:, -1]
+        spacing = float(np.median(others))
+        return spacing if spacing > 0 else 1.0
 
     def one_blas_thread(self):  # noqa: ANN201 - threadpoolctl's context manager
         if self._threadpools is None:

@@ -48,7 +48,11 @@ def search_together(search: CropSearch, queries: Sequence[QueryWindows]) -> list
     while asked:
         score_round(queries, asked)
         for member, corners in list(asked.items()):
-            advance(member, queries[member].distances(corners))
+            query = queries[member]
+            values = query.distances(corners)
+            if search.sees_answers:
+                values = query.scores(corners)
+            advance(member, values)
     return [chosen[member] for member in range(len(queries))]
 
 

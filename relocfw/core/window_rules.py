@@ -106,10 +106,20 @@ def geometric_median(points: np.ndarray, weights: np.ndarray | None = None) -> n
     for _ in range(WEISZFELD_STEPS):
         gaps = np.linalg.norm(points - estimate, axis=1)
         on = gaps < WEISZFELD_FLOOR
-        if on.any():  # sitting on a point: that point is the median if it holds enough
-            return points[np.argmax(on)] if on.sum() * 2 >= len(points) else estimate
-        pull = weights / gaps
-        moved = pull @ points / pull.sum()
+        if not on.any():
+            pull = weights / gaps
+            moved = pull @ points / pull.sum()
+        else:  # sitting on a point (Vardi & Zhang): it is the median unless the others
+            away = ~on  # pull harder than its own weight holds
+            if not away.any():
+                return estimate
+            pull = weights[away] / gaps[away]
+            held = weights[on].sum()
+            strength = np.linalg.norm(pull @ (points[away] - estimate))
+            if strength <= held:
+                return estimate
+            step = held / strength
+            moved = (1 - step) * (pull @ points[away] / pull.sum()) + step * estimate
         if np.linalg.norm(moved - estimate) < 1e-12:
             return moved
         estimate = moved

@@ -176,6 +176,8 @@ def save_model(
     payload["index"]["state"] = relocalizer.index.state()
     if "refine" in parts:
         payload["refine"]["state"] = relocalizer.refiner.state()
+    if relocalizer.search.wants_map:  # e.g. crop=rule: the map's descriptors and poses
+        payload["crop"]["state"] = relocalizer.search.state()
     if relocalizer.map_poses:
         payload["map_poses"] = torch.tensor(
             [[*p.position, *p.quaternion] for p in relocalizer.map_poses], dtype=torch.float64
@@ -236,6 +238,8 @@ def load_model(
         index = classes["index"](**payload["index"]["options"])
         index.load_state(payload["index"]["state"])
         crop = classes["crop"](**payload["crop"]["options"])
+        if crop.wants_map:
+            crop.load_state(payload["crop"]["state"])
         refiner = stored_refiner(payload, classes, path)
     except (KeyError, TypeError, RuntimeError) as error:
         raise DataError(f"{path}: damaged or incompatible model file ({error})") from error

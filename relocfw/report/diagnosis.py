@@ -51,7 +51,7 @@ class QueryWindows:
     positions: np.ndarray | None = None  # [n, 3] each crop's regressed position
     quaternions: np.ndarray | None = None  # [n, 4] and orientation (w, x, y, z)
     neighbours: np.ndarray | None = None  # [n, K] its nearest map images (by descriptor)
-    distance_scale: float = float("nan")  # the map images' median map distance
+    distance_scale: float = float("nan")  # a unit of map distance (Scorer.distance_scale)
     truth: Pose | None = None
 
     @property
@@ -123,7 +123,7 @@ def diagnose(
     finder, scale = None, float("nan")
     if map_features is not None:
         finder = MapNeighbours(map_features, neighbours)
-        scale = float(np.median(relocalizer.scorer.map_distance(map_features)))
+        scale = relocalizer.scorer.distance_scale(map_features)
     progress = Progress(len(images), "scoring every crop offset", quiet=quiet)
     queries = []
     for frame, image in zip(frames, images, strict=True):

@@ -144,6 +144,12 @@ def study(
             raise ValueError(f"validation frames are test frames: {sorted(leaked)[:3]}")
     settings = choose_settings([validation[s] for s in seeds])
     selectors = {s: fitted_selector(validation[s], s) for s in seeds}
+    # Which rules win on validation (the learned selector left out: it was fitted there).
+    on_validation = {
+        name: pooled_median(rule, [validation[s] for s in seeds])
+        for name, rule in rules_of(settings, selectors[seeds[0]]).items()
+        if name != "learned selector"
+    }
     errors: dict[str, list[np.ndarray]] = {}
     labels: list[str] = []
     for seed in seeds:
@@ -186,6 +192,7 @@ def study(
             },
         },
         "learned_selector_fitted_on": {str(s): len(selectors[s].fitted_on) for s in seeds},
+        "validation_median_position_m": on_validation,
         "rules": table,
     }
 
@@ -228,7 +235,12 @@ def as_markdown(title: str, report: Mapping[str, Any]) -> str:
             f"| {row['headroom_captured']:.0%} |"
         )
     settings = report["settings"]
+    validation = report["validation_median_position_m"]
     lines += [
+        "",
+        "On validation (every seed's validation block pooled), median position (m): "
+        + ", ".join(f"{name} {value:.3f}" for name, value in validation.items())
+        + ".",
         "",
         f"Chosen on validation only: temperature {settings['temperature']:g}, gate threshold "
         f"{settings['gate_threshold']:.3g} (map-image units); the learned selector was fitted "

@@ -9,6 +9,8 @@ network. The file holds numbers only (numpy's format, read with allow_pickle=Fal
 
 from __future__ import annotations
 
+import zipfile
+import zlib
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -99,9 +101,12 @@ def load_windows(path: Path) -> list[RecordedQuery]:
     """
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
+        data = np.load(path, allow_pickle=False)
+        if not hasattr(data, "files"):  # a .npy holds one array, not an archive of them
+            raise ValueError("a single array, not an .npz archive")
+        with data:
             arrays = {key: data[key] for key in data.files}
-    except (OSError, ValueError, EOFError) as error:
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as error:
         raise DataError(f"{path}: not a readable diagnose_windows.npz ({error})") from error
     missing = [key for key in REQUIRED if key not in arrays]
     if missing:

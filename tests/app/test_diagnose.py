@@ -24,6 +24,7 @@ from relocfw.report.diagnosis import (
     spearman,
     summarise_headroom,
 )
+from relocfw.report.window_recording import load_windows
 from tests.cli_runs import relocfw, relocfw_here
 from tests.conftest import TINY_OVERRIDES
 from tests.core.test_pipeline import CountingPoseNet
@@ -176,6 +177,23 @@ def test_cli_diagnose_writes_table_windows_and_figures(tmp_path):
             assert sum(int(r[flag]) for r in mine) == 1, flag
         oracle = next(float(r["position_error_m"]) for r in mine if r["is_oracle"] == "1")
         assert oracle == min(float(r["position_error_m"]) for r in mine)
+    # The recording: every window's pose, its nearest map images, the truth; the
+    # errors it implies are the CSV's.
+    recorded = load_windows(run_dir / "diagnose_windows.npz")
+    assert [q.frame for q in recorded] == sorted(
+        {r["frame"] for r in rows}, key=[r["frame"] for r in rows].index
+    )
+    for query in recorded:
+        mine = [r for r in rows if r["frame"] == query.frame]
+        position, _ = query.window_errors()
+        assert query.windows.neighbour_positions.shape == (query.windows.count, 5, 3)
+        written = np.array([float(r["position_error_m"]) for r in mine])
+        gaps = np.abs(position[:, None] - written[None, :])  # CSV rounds to 1e-6
+        assert gaps.min(axis=1).max() < 2e-6 and gaps.min(axis=0).max() < 2e-6
+        centre_row = next(r for r in mine if r["is_centre"] == "1")
+        assert position[query.windows.centre] == pytest.approx(
+            float(centre_row["position_error_m"]), abs=1e-5
+        )
     assert (run_dir / "training_curve.png").is_file()
     pngs = sorted(p.name for p in run_dir.glob("diagnose_*.png"))
     assert pngs == [
