@@ -244,7 +244,9 @@ def as_markdown(title: str, report: Mapping[str, Any]) -> str:
         "",
         f"Chosen on validation only: temperature {settings['temperature']:g}, gate threshold "
         f"{settings['gate_threshold']:.3g} (map-image units); the learned selector was fitted "
-        f"on each seed's validation windows ({report['learned_selector_fitted_on']} queries).",
+        "on each seed's validation windows ("
+        + ", ".join(f"seed {s}: {n}" for s, n in report["learned_selector_fitted_on"].items())
+        + " queries).",
     ]
     return "\n".join(lines) + "\n"
 
