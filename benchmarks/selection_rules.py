@@ -33,7 +33,10 @@ from relocfw.model.checkpoints import write_text_atomic
 from relocfw.report.rule_study import as_markdown, headroom_figure, study
 from relocfw.report.window_recording import load_windows
 
-REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-redkitchen"
+# Resolved (a linked shared/ names its real folder): the dataset root is part of a
+# checkpoint's key, so models trained from the same folder by another path are reused.
+SHARED = Path(__file__).resolve().parents[2] / "shared"
+REDKITCHEN = (SHARED / "data" / "7scenes-redkitchen").resolve()
 RK = ["dataset=sevenscenes", f"dataset.root={REDKITCHEN}", "dataset.scene=redkitchen"]
 SPLITS = {
     "near": {"validation": ["[1,5,7]", "[3]"], "test": None},
