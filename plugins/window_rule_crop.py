@@ -1,12 +1,16 @@
-"""A crop search that chooses by a test-time selection rule over every window's pose.
+"""A crop search that answers by a test-time selection rule over every window's pose.
 
 crop=rule scores every crop offset (as crop=sweep) and is sent each window's network
-answer as well as its map distance (`CropSearch.sees_answers`), then picks the window
-that a rule of relocfw.core.window_rules names: `retrieval_consistency` (the window
+answer as well as its map distance (`CropSearch.sees_answers`), then answers as a rule
+of relocfw.core.window_rules says. Rules that name a window: `consensus` (the window
+nearest the robust centre of every window's pose), `retrieval_consistency` (the window
 whose regressed pose agrees best with the poses of its own nearest map images),
-`consensus` (the window nearest the robust centre of every window's pose), `gated`
-(the paper's window only when the query is far from the map) or `min_distance` /
-`centre` (for checks). The rules, and which of them win where, are studied offline on
+`gated` (the paper's window only when the query is far from the map), `min_distance`
+and `centre` (for checks). Rules that blend windows: `mean` (every window's pose
+averaged: test-time augmentation over crops), `robust_mean` (geometric-median position,
+median rotation) and `soft_min_distance` (weights exp(-excess distance / tau)); their
+crop is the window nearest the blended pose, and the blend is the answer
+(relocfw.core.values.CropWithPose). Which rules win where is studied offline on
 recorded windows: docs/results/beyond-the-paper.md.
 """
 
@@ -28,44 +32,58 @@ from relocfw.core.interfaces import (
 )
 from relocfw.core.options import integer_at_least
 from relocfw.core.standardise import ZScore, k_nearest
-from relocfw.core.values import Crop, Pose
+from relocfw.core.values import Crop, CropWithPose, Pose
 from relocfw.core.window_rules import (
+    Choice,
     Windows,
     centre,
     consensus,
+    deviations,
     gated,
     min_distance,
     retrieval_consistency,
+    robust_mean,
+    soft_min_distance,
 )
 
-# Rules that name a window (a blend of windows is a pose, not a crop).
-WINDOW_RULES = ("retrieval_consistency", "consensus", "gated", "min_distance", "centre")
+# Rules that name a window, and rules that blend every window's pose.
+WINDOW_RULES = ("consensus", "retrieval_consistency", "gated", "min_distance", "centre")
+BLEND_RULES = ("mean", "robust_mean", "soft_min_distance")
 NEEDS_NEIGHBOURS = ("retrieval_consistency",)
 
 
 class WindowRuleSearch(CropSearch):
-    """Every offset scored; the window a selection rule chooses from their answers.
+    """Every offset scored; the answer a selection rule gives from their answers.
 
     Args:
-        rule: one of WINDOW_RULES.
+        rule: one of WINDOW_RULES or BLEND_RULES.
         neighbours: map images per window for retrieval_consistency (the study's 5).
         threshold: gated's threshold on the query's nearest relative map distance
             (in map-image units), chosen on validation (docs/results/beyond-the-paper.md).
+        tau: soft_min_distance's temperature (map-image units).
     """
 
     sees_answers = True
     wants_map = True
 
     def __init__(
-        self, rule: str = "retrieval_consistency", neighbours: int = 5, threshold: float = 1.0
+        self,
+        rule: str = "mean",
+        neighbours: int = 5,
+        threshold: float = 1.0,
+        tau: float = 1.0,
     ) -> None:
-        if rule not in WINDOW_RULES:
-            raise ConfigError(f"crop.rule must be one of {', '.join(WINDOW_RULES)}, got {rule!r}")
+        rules = WINDOW_RULES + BLEND_RULES
+        if rule not in rules:
+            raise ConfigError(f"crop.rule must be one of {', '.join(rules)}, got {rule!r}")
         self.rule = rule
         self.neighbours = integer_at_least("crop.neighbours", neighbours, 1)
         self.threshold = float(threshold)
         if not np.isfinite(self.threshold):
             raise ConfigError(f"crop.threshold must be a finite number, got {threshold!r}")
+        self.tau = float(tau)
+        if not self.tau > 0:
+            raise ConfigError(f"crop.tau must be > 0 (inf: the plain mean), got {tau!r}")
         self.standardise: ZScore | None = None
         self.map_descriptors: np.ndarray | None = None
         self.map_positions: np.ndarray | None = None
@@ -135,20 +153,29 @@ class WindowRuleSearch(CropSearch):
             neighbour_quaternions=near_quaternions,
         ), keep
 
-    def choose(self, windows: Windows) -> int:
-        """The entry of the window the rule names."""
+    def choose(self, windows: Windows) -> Choice:
+        """The rule's answer for the query's windows."""
         rules = {
             "retrieval_consistency": retrieval_consistency,
             "consensus": consensus,
             "gated": lambda w: gated(w, self.threshold),
             "min_distance": min_distance,
             "centre": centre,
+            "mean": lambda w: soft_min_distance(w, np.inf),
+            "robust_mean": robust_mean,
+            "soft_min_distance": lambda w: soft_min_distance(w, self.tau),
         }
-        return int(rules[self.rule](windows).window)
+        return rules[self.rule](windows)
 
     def propose(self, query: SearchQuery) -> CropProposals:
         _, span = crop_side_and_span(query.width, query.height)
         crops = [crop_at(offset, query.width, query.height) for offset in range(span + 1)]
         scores = yield crops  # every offset in one batch, with each one's answer
         windows, keep = self.windows(crops, scores, span // 2)  # centre: crop_at(span // 2)
-        return crops[int(keep[self.choose(windows)])]
+        choice = self.choose(windows)
+        if choice.window is not None:
+            return crops[int(keep[choice.window])]
+        # A blend: reported on the window nearest it, answered with the blended pose.
+        nearest = int(np.argmin(deviations(windows, choice.position, choice.quaternion)))
+        crop = crops[int(keep[nearest])]
+        return CropWithPose(crop.x, crop.y, crop.size, Pose(choice.position, choice.quaternion))

@@ -34,7 +34,7 @@ from relocfw.core.sampled_answer import sampled_answer, samples_answer
 from relocfw.core.sampling import configured_samples
 from relocfw.core.scorer import Scorer
 from relocfw.core.search_loop import score_chosen_together, search_together
-from relocfw.core.values import Crop, Localization, Pose
+from relocfw.core.values import Crop, CropWithPose, Localization, Pose
 
 
 def check_sampling(
@@ -123,6 +123,14 @@ class Relocalizer:
             raise ConfigError(f"options must be a QueryOptions, got {type(options).__name__}")
         self.scorer = Scorer(backbone, index, device, options.batch_size)
         check_options(options, backbone, index, self.scorer.crop_scale, refiner)
+        sampled = options.crop_samples > 0 or configured_samples(backbone) > 0
+        if search.sees_answers and sampled:
+            raise ConfigError(
+                f"the crop search {type(search).__name__} answers from every window's "
+                f"pose; query.crop_samples={options.crop_samples} / backbone.mc_samples="
+                f"{configured_samples(backbone)} would sample the chosen window alone: use "
+                "one or the other"
+            )
         if search.sees_answers and options.scoring != "plain":
             raise ConfigError(
                 f"the crop search {type(search).__name__} chooses by every crop's network "
@@ -265,6 +273,8 @@ class Relocalizer:
             )
             passes += sampled
         pose, refined = self.pose_of(answer), None
+        if isinstance(crop, CropWithPose):  # the search answered a pose of its own
+            pose, crop = crop.pose, crop.plain()
         if self.refiner is not None:
             refined = self.refiner.refine(RefineQuery(query.image, pose, answer.features, camera))
             pose = refined.pose

@@ -98,3 +98,16 @@ class Localization:
     def __post_init__(self) -> None:
         if self.network_passes is None:
             object.__setattr__(self, "network_passes", float(self.evaluations))
+
+
+@dataclass(frozen=True)
+class CropWithPose(Crop):
+    """A crop search's choice that carries the pose to answer with, instead of the
+    chosen crop's own network pose: e.g. a blend of every window's pose
+    (relocfw.plugins.window_rule_crop). The crop stays the window the answer is
+    reported on, and a refiner starts from `pose`."""
+
+    pose: Pose | None = None
+
+    def plain(self) -> Crop:
+        return Crop(self.x, self.y, self.size)

@@ -8,8 +8,13 @@ from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.interfaces import Backbone
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.query_options import QueryOptions
-from relocfw.core.values import Pose, PoseOutput
-from relocfw.core.window_rules import consensus, retrieval_consistency
+from relocfw.core.values import Crop, Pose, PoseOutput
+from relocfw.core.window_rules import (
+    consensus,
+    retrieval_consistency,
+    robust_mean,
+    soft_min_distance,
+)
 from relocfw.model.model_file import load_model, save_model
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
@@ -65,7 +70,7 @@ def fitted():
     return relocalizer, images, poses
 
 
-@pytest.mark.parametrize("rule", ["retrieval_consistency", "consensus"])
+@pytest.mark.parametrize("rule", ["retrieval_consistency", "consensus", "mean", "robust_mean"])
 def test_the_live_search_chooses_the_window_the_recorded_rule_chooses(fitted, tmp_path, rule):
     relocalizer, images, poses = fitted
     live = relocalizer(WindowRuleSearch(rule=rule, neighbours=3))
@@ -74,11 +79,20 @@ def test_the_live_search_chooses_the_window_the_recorded_rule_chooses(fitted, tm
     frames = [type("F", (), {"name": f"q{i}", "pose": poses[i]})() for i in range(4)]
     recorded = diagnose(live, frames, queries, map_features=live.describe(images), neighbours=3)
     save_windows(tmp_path / "w.npz", recorded, poses)
-    offline = {"retrieval_consistency": retrieval_consistency, "consensus": consensus}[rule]
+    offline = {
+        "retrieval_consistency": retrieval_consistency,
+        "consensus": consensus,
+        "mean": lambda w: soft_min_distance(w, np.inf),
+        "robust_mean": robust_mean,
+    }[rule]
     for query, record in zip(queries, load_windows(tmp_path / "w.npz"), strict=True):
         answer = live.localize(query)
         chosen = offline(record.windows)
         assert np.allclose(answer.pose.position, chosen.position)
+        assert np.allclose(answer.pose.quaternion, chosen.quaternion) or np.allclose(
+            answer.pose.quaternion, -chosen.quaternion
+        )
+        assert type(answer.crop) is Crop  # a blend is reported on a plain window
 
 
 def test_min_distance_and_centre_rules_are_the_sweep_and_the_centre_crop(fitted):
@@ -93,7 +107,13 @@ def test_min_distance_and_centre_rules_are_the_sweep_and_the_centre_crop(fitted)
 def test_unknown_rule_and_shared_scoring_are_refused(fitted):
     relocalizer, _, _ = fitted
     with pytest.raises(ConfigError, match="crop.rule"):
-        WindowRuleSearch(rule="robust_mean")  # a blend of windows, not a window
+        WindowRuleSearch(rule="fancy")
+    with pytest.raises(ConfigError, match="crop.tau"):
+        WindowRuleSearch(rule="soft_min_distance", tau=0)
+    with pytest.raises(ConfigError, match="crop_samples"):
+        Relocalizer(
+            ColourPose(), ExhaustiveIndex(), WindowRuleSearch(), QueryOptions(crop_samples=4)
+        )
     with pytest.raises(ConfigError, match="scoring=plain"):
         Relocalizer(
             ColourPose(), ExhaustiveIndex(), WindowRuleSearch(), QueryOptions(scoring="shared")
