@@ -21,7 +21,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
-from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.errors import ConfigError, DataError, RelocfwError
 from relocfw.core.interfaces import (
     CropProposals,
     CropScores,
@@ -128,6 +128,11 @@ class WindowRuleSearch(CropSearch):
         the same answer; each is counted once, as in the study), and the offset of each."""
         if self.map_positions is None or self.standardise is None:
             raise DataError("crop=rule has no map yet: Relocalizer.fit first")
+        if not isinstance(scores, CropScores):
+            raise RelocfwError(
+                "crop=rule chooses by each crop's network answer, which a plain distance "
+                "function does not give: run it through a Relocalizer"
+            )
         answers = np.column_stack([np.asarray(scores), scores.positions, scores.quaternions])
         _, first = np.unique(answers, axis=0, return_index=True)
         keep = np.sort(first)

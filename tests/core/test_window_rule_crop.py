@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.errors import ConfigError, DataError, RelocfwError
 from relocfw.core.interfaces import Backbone
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.query_options import QueryOptions
@@ -126,6 +126,13 @@ def test_it_needs_the_map_poses_and_a_fitted_map():
         pipeline.fit([image(1), image(2)])
     with pytest.raises(DataError, match="Relocalizer.fit first"):
         WindowRuleSearch().state()
+
+
+def test_a_plain_distance_function_is_told_it_needs_a_relocalizer(fitted):
+    relocalizer, _, _ = fitted
+    search = relocalizer(WindowRuleSearch()).search
+    with pytest.raises(RelocfwError, match="run it through a Relocalizer"):
+        search.search(40, 12, lambda crops: np.zeros(len(crops)))
 
 
 def test_a_model_file_keeps_the_searchs_map(tmp_path):
