@@ -49,10 +49,10 @@ def search_together(search: CropSearch, queries: Sequence[QueryWindows]) -> list
         score_round(queries, asked)
         for member, corners in list(asked.items()):
             query = queries[member]
-            values = query.distances(corners)
-            if search.sees_answers:
-                values = query.scores(corners)
-            advance(member, values)
+            # A search that sees answers gets each crop's pose beside its distance.
+            advance(
+                member, query.scores(corners) if search.sees_answers else query.distances(corners)
+            )
     return [chosen[member] for member in range(len(queries))]
 
 
