@@ -15,7 +15,12 @@ from relocfw.core.geometry import pose_from_matrix
 from relocfw.core.values import Pose
 from relocfw.data.frames import Frame
 from relocfw.data.room import Room, RoomRenderer
-from relocfw.data.synthetic import SyntheticSceneSpec, lap_poses, scene_laps
+from relocfw.data.synthetic import (
+    SyntheticSceneSpec,
+    ensure_synthetic_scene,
+    lap_poses,
+    scene_laps,
+)
 from relocfw.model.checkpoints import write_text_atomic
 
 # Where relocfw caches scenes and checkpoints, as the CLI's cache_dir default reads it.
@@ -61,3 +66,16 @@ def device_name(device: str) -> str:
     if torch.device(device).type == "cuda":
         return torch.cuda.get_device_name(torch.device(device))
     return f"cpu ({torch.get_num_threads()} torch threads)"
+
+
+def synthetic_validation(cache_dir: Path) -> list[str]:
+    """Overrides that train on the synthetic scene's laps 1-2 and validate on lap 3
+    (rendered into the cache if need be): the carve every validation study uses."""
+    folder = ensure_synthetic_scene(SyntheticSceneSpec(), cache_dir, quiet=True)
+    return [
+        "dataset=sevenscenes",
+        f"dataset.root={folder}",
+        "dataset.scene=null",
+        "dataset.train_sequences=[1,2]",
+        "dataset.test_sequences=[3]",
+    ]

@@ -27,8 +27,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+from common import synthetic_validation  # benchmarks/, the script's folder
+
 from relocfw.core.json_output import strict_json
-from relocfw.data.synthetic import SyntheticSceneSpec, ensure_synthetic_scene
 from relocfw.model.checkpoints import write_text_atomic
 from relocfw.report.rule_study import as_markdown, headroom_figure, study
 from relocfw.report.window_recording import load_windows
@@ -48,14 +49,7 @@ def dataset_overrides(scene: str, part: str, cache_dir: Path) -> list[str]:
     if scene == "synthetic":
         if part == "test":
             return []
-        folder = ensure_synthetic_scene(SyntheticSceneSpec(), cache_dir, quiet=True)
-        return [
-            "dataset=sevenscenes",
-            f"dataset.root={folder}",
-            "dataset.scene=null",
-            "dataset.train_sequences=[1,2]",
-            "dataset.test_sequences=[3]",
-        ]
+        return synthetic_validation(cache_dir)
     sequences = SPLITS[scene][part]
     if sequences is None:
         return list(RK)

@@ -34,10 +34,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from common import DEFAULT_CACHE, write_json  # benchmarks/, the script's own folder
+from common import DEFAULT_CACHE, synthetic_validation, write_json  # benchmarks/, own folder
 from scipy.stats import wilcoxon
-
-from relocfw.data.synthetic import SyntheticSceneSpec, ensure_synthetic_scene
 
 SCALES = {"relocfw (1.0)": 1.0, "posenet (256/224)": 256 / 224}
 REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-redkitchen"
@@ -47,14 +45,7 @@ def dataset_overrides(name: str, split: str, cache_dir: Path) -> list[str]:
     if name == "synthetic":
         if split == "test":
             return []
-        folder = ensure_synthetic_scene(SyntheticSceneSpec(), cache_dir, quiet=True)
-        return [
-            "dataset=sevenscenes",
-            f"dataset.root={folder}",
-            "dataset.scene=null",
-            "dataset.train_sequences=[1,2]",
-            "dataset.test_sequences=[3]",
-        ]
+        return synthetic_validation(cache_dir)
     overrides = ["dataset=sevenscenes", f"dataset.root={REDKITCHEN}", "dataset.scene=redkitchen"]
     if split == "validation":
         overrides += ["dataset.train_sequences=[1,5,7]", "dataset.test_sequences=[3]"]

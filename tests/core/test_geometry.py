@@ -14,12 +14,7 @@ from relocfw.core.geometry import (
     quaternion_to_matrix,
 )
 from relocfw.core.values import Pose
-
-
-def axis_angle(axis, degrees):
-    axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    half = np.radians(degrees) / 2
-    return np.array([np.cos(half), *(np.sin(half) * axis)])
+from tests.rotations import axis_angle
 
 
 def random_quaternions(n, seed=0):

@@ -21,28 +21,9 @@ from relocfw.core.window_rules import (
     soft_min_distance,
     window_features,
 )
+from tests.rotations import axis_angle, multiply
 
 TRUTH = Pose([1.0, 2.0, 3.0], [np.cos(np.radians(15)), 0.0, 0.0, np.sin(np.radians(15))])
-
-
-def axis_angle(axis, degrees):
-    axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    half = np.radians(degrees) / 2
-    return np.array([np.cos(half), *(np.sin(half) * axis)])
-
-
-def multiply(a, b):
-    """Hamilton product of two (w, x, y, z) quaternions."""
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ]
-    )
 
 
 def near(quaternion, degrees, rng):

@@ -9,12 +9,7 @@ from relocfw.core.sampling import mean_quaternions
 from relocfw.core.values import PoseOutput
 from relocfw.model.pose_head import PoseHead
 from relocfw.plugins.posenet import PoseNet
-
-
-def axis_angle(axis, degrees):
-    axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    half = np.radians(degrees) / 2
-    return np.array([np.cos(half), *(np.sin(half) * axis)])
+from tests.rotations import axis_angle
 
 
 def test_batched_quaternion_mean_ignores_sign_flips():

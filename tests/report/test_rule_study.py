@@ -21,6 +21,7 @@ from relocfw.report.rule_study import (
     study,
 )
 from relocfw.report.window_recording import RecordedQuery, load_windows, save_windows
+from tests.rotations import multiply
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 TRUTH = Pose([1.0, -2.0, 0.5], IDENTITY)
@@ -223,20 +224,6 @@ def study_query(frame, truth_seed, window_seed):
         neighbour_quaternions=np.tile(truth.quaternion, (5, 4, 1)),
     )
     return RecordedQuery(frame, windows, truth)
-
-
-def multiply(a, b):
-    """Hamilton product of two (w, x, y, z) quaternions."""
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ]
-    )
 
 
 SEEDS = (0, 1)
