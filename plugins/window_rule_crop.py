@@ -16,7 +16,7 @@ recorded windows: docs/results/beyond-the-paper.md.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
@@ -36,6 +36,7 @@ from relocfw.core.values import Crop, CropWithPose, Pose
 from relocfw.core.window_rules import (
     Choice,
     Windows,
+    along_axis,
     centre,
     consensus,
     deviations,
@@ -84,6 +85,16 @@ class WindowRuleSearch(CropSearch):
         self.tau = float(tau)
         if not self.tau > 0:
             raise ConfigError(f"crop.tau must be > 0 (inf: the plain mean), got {tau!r}")
+        self.rule_function: Callable[[Windows], Choice] = {
+            "retrieval_consistency": retrieval_consistency,
+            "consensus": consensus,
+            "gated": lambda w: gated(w, self.threshold),
+            "min_distance": min_distance,
+            "centre": centre,
+            "mean": lambda w: soft_min_distance(w, np.inf),
+            "robust_mean": robust_mean,
+            "soft_min_distance": lambda w: soft_min_distance(w, self.tau),
+        }[rule]
         self.standardise: ZScore | None = None
         self.map_descriptors: np.ndarray | None = None
         self.map_positions: np.ndarray | None = None
@@ -136,9 +147,7 @@ class WindowRuleSearch(CropSearch):
         answers = np.column_stack([np.asarray(scores), scores.positions, scores.quaternions])
         _, first = np.unique(answers, axis=0, return_index=True)
         keep = np.sort(first)
-        starts = np.array([c.x + c.y for c in crops], dtype=np.float64)[keep]
-        spread = starts.max() - starts.min()
-        offsets = (starts - starts.min()) / spread if spread > 0 else np.full(len(keep), 0.5)
+        offsets = along_axis(np.array([c.x + c.y for c in crops])[keep])
         centre_entry = int(np.argmin(np.abs(answers[keep] - answers[centre_offset]).sum(axis=1)))
         near_positions = near_quaternions = None
         if self.rule in NEEDS_NEIGHBOURS:
@@ -160,17 +169,7 @@ class WindowRuleSearch(CropSearch):
 
     def choose(self, windows: Windows) -> Choice:
         """The rule's answer for the query's windows."""
-        rules = {
-            "retrieval_consistency": retrieval_consistency,
-            "consensus": consensus,
-            "gated": lambda w: gated(w, self.threshold),
-            "min_distance": min_distance,
-            "centre": centre,
-            "mean": lambda w: soft_min_distance(w, np.inf),
-            "robust_mean": robust_mean,
-            "soft_min_distance": lambda w: soft_min_distance(w, self.tau),
-        }
-        return rules[self.rule](windows)
+        return self.rule_function(windows)
 
     def propose(self, query: SearchQuery) -> CropProposals:
         _, span = crop_side_and_span(query.width, query.height)

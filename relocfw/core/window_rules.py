@@ -90,6 +90,14 @@ class Choice:
     window: int | None = None
 
 
+def along_axis(starts: np.ndarray) -> np.ndarray:
+    """Windows' `offsets` from where each starts along the long axis: 0 at one end,
+    1 at the other, 0.5 for all when they do not move."""
+    starts = np.asarray(starts, dtype=np.float64)
+    spread = starts.max() - starts.min()
+    return (starts - starts.min()) / spread if spread > 0 else np.full(len(starts), 0.5)
+
+
 def window_choice(windows: Windows, i: int) -> Choice:
     return Choice(windows.positions[i], rows_on_one_hemisphere(windows.quaternions[i]), int(i))
 

@@ -20,7 +20,7 @@ import numpy as np
 from relocfw.core.atomic_files import atomic_write
 from relocfw.core.errors import DataError
 from relocfw.core.values import Pose
-from relocfw.core.window_rules import Windows
+from relocfw.core.window_rules import Windows, along_axis
 from relocfw.report.diagnosis import QueryWindows, pose_errors
 
 FORMAT = 1
@@ -122,9 +122,7 @@ def load_windows(path: Path) -> list[RecordedQuery]:
         keep = distinct_windows(views)
         # The centre offset's window (it may share one with an earlier offset).
         centre = int(np.argmin(np.abs(views[keep] - views[arrays["centres"][q]]).sum(axis=1)))
-        xs = views[keep, 0] + views[keep, 1]  # the window moves along one axis only
-        spread = xs.max() - xs.min()
-        offsets = (xs - xs.min()) / spread if spread > 0 else np.full(len(keep), 0.5)
+        offsets = along_axis(views[keep, 0] + views[keep, 1])  # it moves along one axis
         near = None if neighbours is None else neighbours[part][keep]
         windows = Windows(
             distances=arrays["distances"][part][keep],
