@@ -11,10 +11,21 @@ import torch
 from torch import nn
 
 
-def layer_multiply_adds(layer: nn.Module, output: torch.Tensor) -> int:
-    """Multiply-adds a convolution or linear layer made to produce `output` (0 for any
-    other layer: activations, pooling, normalisation and dropout are a small share of
-    a CNN's work and are not counted)."""
+def layer_multiply_adds(
+    layer: nn.Module, output: torch.Tensor, source: torch.Tensor | None = None
+) -> int:
+    """Multiply-adds a convolution or linear layer made to produce `output` from
+    `source` (0 for any other layer: activations, pooling, normalisation and dropout
+    are a small share of a CNN's work and are not counted).
+
+    A transposed convolution (a decoder's up-convolution, backbone=hourglass) spreads
+    each input cell over its kernel: its work is counted from `source`, its input.
+    """
+    if isinstance(layer, (nn.ConvTranspose1d, nn.ConvTranspose2d, nn.ConvTranspose3d)):
+        if source is None:
+            raise ValueError(f"{type(layer).__name__}'s multiply-adds need its input")
+        per_input = layer.out_channels // layer.groups * math.prod(layer.kernel_size)
+        return source.numel() * per_input
     if isinstance(layer, (nn.Conv1d, nn.Conv2d, nn.Conv3d)):
         per_output = layer.in_channels // layer.groups * math.prod(layer.kernel_size)
         return output.numel() * per_output
@@ -31,10 +42,11 @@ def multiply_adds(network: nn.Module, run: Callable[[], Any]) -> int:
     """
     total = 0
 
-    def count(layer: nn.Module, _inputs: Any, output: Any) -> None:
+    def count(layer: nn.Module, inputs: Any, output: Any) -> None:
         nonlocal total
         if isinstance(output, torch.Tensor):
-            total += layer_multiply_adds(layer, output)
+            source = inputs[0] if inputs and isinstance(inputs[0], torch.Tensor) else None
+            total += layer_multiply_adds(layer, output, source)
 
     hooks = [layer.register_forward_hook(count) for layer in network.modules()]
     try:

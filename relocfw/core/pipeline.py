@@ -235,11 +235,15 @@ class Relocalizer:
             self.refiner.fit(views, features, quiet=quiet)
         return features
 
-    def localize(self, image: np.ndarray, camera: PinholeCamera | None = None) -> Localization:
+    def localize(
+        self, image: np.ndarray, camera: PinholeCamera | None = None, name: str | None = None
+    ) -> Localization:
         """Pose of one RGB image (H x W x 3 uint8) through the crop search.
 
         Args:
             camera: the image's intrinsics, for a refiner; None: the map's camera.
+            name: the image's frame name, for a refiner that reads the recording
+                (refine=sequence: "seq-03/frame-000042"); None: unknown.
 
         Raises:
             DataError: the image is of another type or shape (e.g. float, RGBA).
@@ -247,7 +251,7 @@ class Relocalizer:
         check_rgb_image(image)
         query = QueryWindows(image, self.scorer, self.options.scoring)  # strip
         (crop,) = search_together(self.search, [query])  # search
-        return self.answer(query, crop, camera=camera)
+        return self.answer(query, crop, camera=camera, name=name)
 
     def answer(
         self,
@@ -255,6 +259,7 @@ class Relocalizer:
         crop: Crop,
         seconds: float | None = None,
         camera: PinholeCamera | None = None,
+        name: str | None = None,
     ) -> Localization:
         """The Localization of a query's chosen crop: rerank -> sample -> pose -> refine.
 
@@ -262,6 +267,7 @@ class Relocalizer:
             seconds: the query's time when the caller measures it (`localize_many`
                 shares a group's time among its queries); default: since the strip.
             camera: the query's intrinsics, for the refiner (None: the map's).
+            name: the query's frame name, for the refiner (None: unknown).
         """
         crop = query.rerank(crop, self.options.rerank)
         distance, answer = query.answer_of(crop)
@@ -276,7 +282,9 @@ class Relocalizer:
         if isinstance(crop, CropWithPose):  # the search answered a pose of its own
             pose, crop = crop.pose, crop.plain()
         if self.refiner is not None:
-            refined = self.refiner.refine(RefineQuery(query.image, pose, answer.features, camera))
+            refined = self.refiner.refine(
+                RefineQuery(query.image, pose, answer.features, camera, name)
+            )
             pose = refined.pose
         return Localization(
             pose=pose,
@@ -302,6 +310,7 @@ class Relocalizer:
         images: Sequence[np.ndarray],
         queries_at_once: int | None = None,
         cameras: Sequence[PinholeCamera | None] | None = None,
+        names: Sequence[str | None] | None = None,
     ) -> list[Localization]:
         """Poses of many images, `queries_at_once` (default: the options') searched
         together: their plain windows go through shared forward passes (at most
@@ -311,6 +320,9 @@ class Relocalizer:
         windows), so the answers are `localize`'s; only the network calls are merged.
         A query's `seconds` is its group's time shared equally among its queries.
         `cameras`: each image's intrinsics, for a refiner (None: the map's camera).
+        `names`: each image's frame name, for a refiner that reads recordings; the
+        answers are given in the images' order, so a recording's queries reach the
+        refiner in the order they are listed.
 
         Raises:
             DataError: an image is not H x W x 3 uint8 RGB (naming its index), before
@@ -321,19 +333,25 @@ class Relocalizer:
         cameras = [None] * len(images) if cameras is None else list(cameras)
         if len(cameras) != len(images):
             raise DataError(f"{len(images)} images but {len(cameras)} cameras")
+        names = [None] * len(images) if names is None else list(names)
+        if len(names) != len(images):
+            raise DataError(f"{len(images)} images but {len(names)} names")
         answers: list[Localization] = []
         for start in range(0, len(images), size):
             group, group_cameras = images[start : start + size], cameras[start : start + size]
+            group_names = names[start : start + size]
             if len(group) == 1:
-                answers.append(self.localize(group[0], group_cameras[0]))
+                answers.append(self.localize(group[0], group_cameras[0], group_names[0]))
                 continue
             started = time.perf_counter()
             queries = [QueryWindows(image, self.scorer, self.options.scoring) for image in group]
             crops = search_together(self.search, queries)
             score_chosen_together(queries, crops, self.options.rerank)
             found = [
-                self.answer(q, c, camera=camera)
-                for q, c, camera in zip(queries, crops, group_cameras, strict=True)
+                self.answer(q, c, camera=camera, name=name)
+                for q, c, camera, name in zip(
+                    queries, crops, group_cameras, group_names, strict=True
+                )
             ]
             seconds = (time.perf_counter() - started) / len(group)
             answers += [dataclasses.replace(a, seconds=seconds) for a in found]

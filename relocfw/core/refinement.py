@@ -64,12 +64,16 @@ class RefineQuery:
         descriptor: [D] the chosen crop's dropout-free descriptor, comparable with the
             map descriptors given to `fit` (keyframes can be retrieved with it).
         camera: the query's intrinsics; None: the map's camera (the same robot).
+        name: the query's frame name where the caller knows it (e.g.
+            "seq-03/frame-000042"); a refiner that needs the frames before the query
+            (refine=sequence) reads its recording from the folder part.
     """
 
     image: np.ndarray
     network_pose: Pose
     descriptor: np.ndarray
     camera: PinholeCamera | None = None
+    name: str | None = None
 
 
 @dataclass(frozen=True)

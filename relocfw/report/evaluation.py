@@ -76,12 +76,14 @@ def evaluate(
     choices, and timing it would charge whichever method runs first.
     """
     # A refiner solves each query with its own camera (a test split may come from
-    # another sensor than the map); other pipelines take images only.
+    # another sensor than the map) and may read the recording from the frame's name
+    # (refine=sequence); other pipelines take images only.
     refined = getattr(relocalizer, "refiner", None) is not None
     cameras = [getattr(frame, "camera", None) for frame in frames]
+    names = [getattr(frame, "name", None) for frame in frames]
     if warm_up and len(images):
         if refined:
-            relocalizer.localize(images[0], cameras[0])
+            relocalizer.localize(images[0], cameras[0], names[0])
         else:
             relocalizer.localize(images[0])
     progress = Progress(len(frames), f"relocalizing ({method})", quiet=quiet)
@@ -93,12 +95,12 @@ def evaluate(
         # Groups of queries share forward passes (Relocalizer.localize_many); one
         # query at a time when queries_at_once is 1, its latency then its own.
         if group == 1 and refined:
-            answers.append(relocalizer.localize(images[start], cameras[start]))
+            answers.append(relocalizer.localize(images[start], cameras[start], names[start]))
         elif group == 1:
             answers.append(relocalizer.localize(images[start]))
         elif refined:
             chunk = slice(start, start + group)
-            answers += relocalizer.localize_many(images[chunk], group, cameras[chunk])
+            answers += relocalizer.localize_many(images[chunk], group, cameras[chunk], names[chunk])
         else:
             answers += relocalizer.localize_many(images[start : start + group], group)
         progress.advance(min(group, len(images) - start))

@@ -115,3 +115,13 @@ def test_multiply_adds_count_convolutions_and_linear_layers_as_run():
     assert multiply_adds(network, lambda: network(images)) == 2 * 64 * 27 + 2 * 5 * 64
     grouped = nn.Conv2d(4, 4, 1, groups=2)
     assert multiply_adds(grouped, lambda: grouped(torch.zeros(1, 4, 2, 2))) == 16 * 2
+
+
+def test_a_transposed_convolution_counts_its_input_cells_times_its_kernel():
+    from relocfw.core.multiply_adds import multiply_adds
+
+    # Each of 2 x 3 x 5 x 5 input values meets 4 output channels x 4 x 4 taps: the
+    # work is the same spread however much the stride enlarges the output.
+    for stride in (1, 2):
+        up = nn.ConvTranspose2d(3, 4, 4, stride=stride)
+        assert multiply_adds(up, lambda up=up: up(torch.zeros(2, 3, 5, 5))) == 2 * 3 * 25 * 4 * 16
