@@ -10,13 +10,15 @@ AssertionError with a sentence saying which rule broke. Call them from your test
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 
 import numpy as np
 import torch
 
 from relocfw.core.interfaces import Backbone, CropSearch, SimilarityIndex, crop_side_and_span
-from relocfw.core.values import Crop, PoseOutput
+from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
+from relocfw.core.values import Crop, Pose, PoseOutput
 from relocfw.core.window_pooling import StripMaps
 
 IMAGE_SIZES = ((640, 480), (160, 120), (300, 400), (97, 64), (100, 100))
@@ -147,3 +149,67 @@ def check_sampling(backbone: Backbone, images: torch.Tensor, samples: int = 4) -
     assert torch.allclose(sampled.features, plain.features, atol=1e-5), (
         "sampling must not change the descriptor the index sees (return the dropout-free one)"
     )
+
+
+def check_refiner(make_refiner: Callable[[], PoseRefiner], dim: int = 8) -> None:
+    """A refiner fitted on a small map of two recordings answers every query with a
+    `Refined` (finite position, unit quaternion, a float confidence, a bool fell_back,
+    seconds per part), leaves the query as it was, answers a query without reading the
+    queries after it, and, where it saves a state, answers the same after
+    `load_state(state())` on a fresh instance.
+
+    `make_refiner` builds a fresh, unfitted refiner; queries carry frame names
+    ("rec-1/frame-000003") in recording order, as the pipeline sends them."""
+    rng = np.random.default_rng(0)
+    views, descriptors = [], []
+    for recording in range(2):
+        for frame in range(8):
+            position = np.array([0.1 * frame, float(recording), 0.0])
+            angle = 0.05 * frame
+            quaternion = np.array([np.cos(angle), 0.0, 0.0, np.sin(angle)])
+            image = rng.integers(0, 256, (12, 16, 3), dtype=np.uint8)
+            name = f"rec-{recording}/frame-{frame:06d}"
+            views.append(MapImage(name, image, Pose(position, quaternion)))
+            descriptors.append(np.concatenate([position, rng.normal(size=dim - 3)]))
+    descriptors = np.stack(descriptors)
+    queries = [
+        RefineQuery(view.image.copy(), view.pose, descriptors[i] + 0.01, name=f"q/{i:06d}")
+        for i, view in enumerate(views[:6])
+    ]
+
+    def answers(refiner: PoseRefiner, asked: Sequence[RefineQuery]) -> list[Refined]:
+        return [refiner.refine(query) for query in asked]
+
+    refiner = make_refiner()
+    refiner.fit(views, descriptors, quiet=True)
+    first = answers(refiner, queries)
+    for i, (query, refined) in enumerate(zip(queries, first, strict=True)):
+        assert isinstance(refined, Refined), "refine() must return relocfw.Refined"
+        assert np.all(np.isfinite(refined.pose.position)), "the refined position must be finite"
+        norm = np.linalg.norm(refined.pose.quaternion)
+        assert abs(norm - 1) < 1e-6, "the refined quaternion must have unit norm"
+        assert isinstance(refined.confidence, float), "confidence must be a float (NaN: none)"
+        assert isinstance(refined.fell_back, bool), "fell_back must be a bool"
+        assert all(isinstance(s, float) for s in refined.seconds.values()), "seconds: floats"
+        assert np.array_equal(query.descriptor, descriptors[i] + 0.01), (
+            "refine() must not change the query's descriptor"
+        )
+    # Later queries changed: the answers before them must not move.
+    changed = queries[:3] + [
+        dataclasses.replace(q, descriptor=q.descriptor + 5.0, image=255 - q.image)
+        for q in queries[3:]
+    ]
+    again = make_refiner()
+    again.fit(views, descriptors, quiet=True)
+    for before, after in zip(first[:3], answers(again, changed)[:3], strict=True):
+        assert np.allclose(before.pose.position, after.pose.position, atol=1e-9), (
+            "an answer must not depend on the queries after it (nor on what another "
+            "instance of the refiner was asked: keep state on the instance)"
+        )
+    if refiner.saves_state:
+        loaded = make_refiner()
+        loaded.load_state(refiner.state())
+        for before, after in zip(first, answers(loaded, queries), strict=True):
+            assert np.allclose(before.pose.position, after.pose.position, atol=1e-6), (
+                "a refiner loaded from state() must answer as the fitted one"
+            )

@@ -4,7 +4,12 @@ import dataclasses
 
 import pytest
 
-from relocfw.core.contracts import check_backbone, check_crop_search, check_similarity_index
+from relocfw.core.contracts import (
+    check_backbone,
+    check_crop_search,
+    check_refiner,
+    check_similarity_index,
+)
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch
@@ -75,3 +80,36 @@ def test_a_broken_search_is_caught():
 
     with pytest.raises(AssertionError, match="scored twice"):
         check_crop_search(Repeats())
+
+
+@pytest.mark.parametrize("direction", ["causal", "bidirectional"])
+def test_the_sequence_refiner_keeps_the_refiner_contract(direction):
+    from relocfw.plugins.sequence_refiner import SequenceRefiner
+
+    check_refiner(lambda: SequenceRefiner(window=3, direction=direction, hidden=8, steps=20))
+
+
+def test_the_retrieval_refiner_keeps_the_refiner_contract():
+    from relocfw.plugins.retrieval_refiner import RetrievalRefiner
+
+    check_refiner(lambda: RetrievalRefiner(k=2))
+
+
+def test_the_refiner_check_catches_a_refiner_with_global_state():
+    from relocfw.core.values import Pose
+    from relocfw.plugins.retrieval_refiner import RetrievalRefiner
+
+    class Remembers(RetrievalRefiner):
+        """Keeps its history on the class: a second instance answers from the first's
+        queries, the kind of state a refiner must not share."""
+
+        history = []
+
+        def refine(self, query):
+            self.history.append(query.name)
+            found = super().refine(query)
+            moved = found.pose.position + 0.1 * len(self.history)
+            return dataclasses.replace(found, pose=Pose(moved, found.pose.quaternion))
+
+    with pytest.raises(AssertionError, match="after it"):
+        check_refiner(lambda: Remembers(k=1))
