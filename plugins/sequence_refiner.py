@@ -170,6 +170,51 @@ class SequenceRefiner(PoseRefiner):
         pose = Pose(position, quaternion[0, -1].double().numpy())
         return Refined(pose, seconds={"sequence": time.perf_counter() - started})
 
+    def state(self) -> dict[str, torch.Tensor]:
+        """The standardisation, the position frame and the network's weights; the
+        options (window, direction, hidden) are the constructor's, which model files
+        keep. The recordings' histories are not state: a loaded model starts afresh."""
+        if self.network is None:
+            raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
+        weights = {f"network.{k}": v.detach().clone() for k, v in self.network.state_dict().items()}
+        return {
+            **self.zscore.state(),
+            "position_mean": torch.from_numpy(self.position_mean.astype(np.float64)),
+            "position_scale": torch.tensor(self.position_scale, dtype=torch.float64),
+            **weights,
+        }
+
+    def load_state(self, state: dict[str, torch.Tensor]) -> None:
+        """What `state` returned. A model file is data from anyone: a state that does
+        not fit these options is a DataError naming the key, before anything is kept."""
+        for key in ("mean", "std", "position_mean", "position_scale"):
+            if not isinstance(state.get(key), torch.Tensor):
+                raise DataError(f"sequence state: {key} is missing or not a tensor")
+        mean = state["mean"]
+        if mean.ndim != 1 or state["std"].shape != mean.shape:
+            raise DataError("sequence state: mean and std must be vectors of one length")
+        position_mean = state["position_mean"].double().numpy()
+        scale = state["position_scale"]
+        if position_mean.shape != (3,) or scale.numel() != 1:
+            raise DataError("sequence state: position_mean must be [3], position_scale one value")
+        scale = float(scale.item())
+        if not (np.isfinite(position_mean).all() and np.isfinite(scale) and scale > 0):
+            raise DataError("sequence state: position_mean or position_scale is NaN, inf or <= 0")
+        network = SequencePoseNetwork(len(mean), self.hidden, self.direction, self.input_dropout)
+        weights = {k[len("network.") :]: v for k, v in state.items() if k.startswith("network.")}
+        try:
+            network.load_state_dict(weights, strict=True)
+        except RuntimeError as error:
+            first = str(error).strip().splitlines()[0]
+            raise DataError(
+                f"sequence state: the network's weights do not fit refine.hidden={self.hidden}, "
+                f"refine.direction={self.direction} ({first})"
+            ) from error
+        self.zscore = ZScore().load_state(state)
+        self.position_mean, self.position_scale = position_mean, scale
+        self.network = network.eval()
+        self.history, self.seen = {}, {}
+
 
 def pose_loss(
     positions: torch.Tensor,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import ConfigError, MapImage, Pose
+from relocfw import ConfigError, DataError, MapImage, Pose
 from relocfw.core.refinement import RefineQuery
 from relocfw.model.sequence_network import SequencePoseNetwork
 from relocfw.plugins.sequence_refiner import SequenceRefiner, recording_of, recordings_of
@@ -156,3 +156,21 @@ def test_bad_options_and_a_query_without_a_name_fail_with_the_key():
     refiner = fitted(steps=5)
     with pytest.raises(ConfigError, match="frame name"):
         refiner.refine(query(None, np.zeros(DIM)))
+
+
+def test_a_saved_state_answers_as_the_fitted_refiner_and_a_bad_one_names_its_key():
+    refiner = fitted(steps=20)
+    names = [f"seq-q/frame-{i}" for i in range(5)]
+    descriptors = descriptors_of(trajectory(5, 0.3), np.random.default_rng(6), noise=0.1)
+    state = refiner.state()
+    loaded = SequenceRefiner(window=4, hidden=16)
+    loaded.load_state(state)
+    np.testing.assert_allclose(
+        answers(loaded, names, descriptors), answers(refiner, names, descriptors), atol=1e-6
+    )
+    with pytest.raises(DataError, match="refine.hidden=32"):
+        SequenceRefiner(hidden=32).load_state(state)
+    with pytest.raises(DataError, match="position_scale"):
+        SequenceRefiner(hidden=16).load_state({**state, "position_scale": torch.tensor(-1.0)})
+    with pytest.raises(DataError, match="mean"):
+        SequenceRefiner(hidden=16).load_state({k: v for k, v in state.items() if k != "mean"})
