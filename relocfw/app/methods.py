@@ -185,7 +185,7 @@ def build_method(cfg: DictConfig, choices: Mapping[str, str], label: str | None 
     refiner = None if refine == "none" else build(cfg, "refine", refine)
     # Before training: the trained model will have train.crop_scale.
     try:
-        check_options(query, backbone, index, settings.crop_scale, refiner)
+        check_options(query, backbone, index, settings.crop_scale, refiner, search)
     except ConfigError as error:
         raise in_query_terms(error) from error
     check_pretrained(cfg, choices, backbone)

@@ -69,14 +69,38 @@ def check_options(
     index: SimilarityIndex,
     crop_scale: float,
     refiner: PoseRefiner | None = None,
+    search: CropSearch | None = None,
 ) -> None:
-    """The checks of `options` that need the parts they run with (ConfigError)."""
+    """The checks of `options` that need the parts they run with (ConfigError); the
+    CLI runs them before training, the Relocalizer when it is built."""
     if options.scoring == "shared" and not backbone.shares_strip:
         raise ConfigError(
             f"scoring=shared needs a backbone with feature_maps and describe_pooled; "
             f"{type(backbone).__name__} lacks them (use scoring=plain)"
         )
     check_sampling(options.crop_samples, configured_samples(backbone), crop_scale, refiner)
+    if search is not None and search.sees_answers:
+        check_search_sees_answers(options, backbone, search)
+
+
+def check_search_sees_answers(
+    options: QueryOptions, backbone: Backbone, search: CropSearch
+) -> None:
+    """A search that chooses by every window's answer (CropSearch.sees_answers) needs
+    each window's pose, which only plain scoring computes, and answers from all of them,
+    so sampling the chosen window alone would mean nothing."""
+    samples = configured_samples(backbone)
+    if options.crop_samples > 0 or samples > 0:
+        raise ConfigError(
+            f"the crop search {type(search).__name__} answers from every window's "
+            f"pose; query.crop_samples={options.crop_samples} / backbone.mc_samples="
+            f"{samples} would sample the chosen window alone: use one or the other"
+        )
+    if options.scoring != "plain":
+        raise ConfigError(
+            f"the crop search {type(search).__name__} chooses by every crop's network "
+            f"answer, which scoring={options.scoring} does not compute: use scoring=plain"
+        )
 
 
 class Relocalizer:
@@ -122,20 +146,7 @@ class Relocalizer:
         if not isinstance(options, QueryOptions):
             raise ConfigError(f"options must be a QueryOptions, got {type(options).__name__}")
         self.scorer = Scorer(backbone, index, device, options.batch_size)
-        check_options(options, backbone, index, self.scorer.crop_scale, refiner)
-        sampled = options.crop_samples > 0 or configured_samples(backbone) > 0
-        if search.sees_answers and sampled:
-            raise ConfigError(
-                f"the crop search {type(search).__name__} answers from every window's "
-                f"pose; query.crop_samples={options.crop_samples} / backbone.mc_samples="
-                f"{configured_samples(backbone)} would sample the chosen window alone: use "
-                "one or the other"
-            )
-        if search.sees_answers and options.scoring != "plain":
-            raise ConfigError(
-                f"the crop search {type(search).__name__} chooses by every crop's network "
-                f"answer, which scoring={options.scoring} does not compute: use scoring=plain"
-            )
+        check_options(options, backbone, index, self.scorer.crop_scale, refiner, search)
         self.options = options
         self.search = search
         self.refiner = refiner

@@ -22,3 +22,12 @@ def test_compare_runs_the_rule_rows_on_one_model(tmp_path):
     assert rows["Mean of all windows"]["mean_crops_scored"] == sweep["mean_crops_scored"]
     # A blend is its own answer, not the centre crop's.
     assert rows["Mean of all windows"]["median_position_m"] != rows["PoseNet"]["median_position_m"]
+
+
+def test_a_rule_with_shared_scoring_is_refused_before_any_training(tmp_path):
+    from tests.cli_runs import relocfw_here
+
+    result = relocfw_here([*TINY_OVERRIDES, "crop=rule", "query.scoring=shared"], tmp_path)
+    assert result.returncode == 2, result.stderr
+    assert "scoring=plain" in result.stderr and "Traceback" not in result.stderr
+    assert not list((tmp_path / "cache").glob("checkpoints/*.pt"))  # nothing was trained
