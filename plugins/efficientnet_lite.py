@@ -97,8 +97,13 @@ class EfficientNetLite0(DropoutBackbone):
         return d(self.trunk._swish(self.trunk._bn1(self.trunk._conv_head(x))))
 
     def block(self, index: int, x: torch.Tensor) -> torch.Tensor:
-        # The package's own stochastic depth: its rate grows with depth (training only).
-        rate = self.trunk._global_params.drop_connect_rate
-        if rate:
-            rate *= index / len(self.trunk._blocks)
-        return self.trunk._blocks[index](x, drop_connect_rate=rate)
+        return run_block(self.trunk, index, x)
+
+
+def run_block(trunk: torch.nn.Module, index: int, x: torch.Tensor) -> torch.Tensor:
+    """MBConv block `index` of an EfficientNet-Lite trunk, with the package's own
+    stochastic depth: its rate grows with depth (training only)."""
+    rate = trunk._global_params.drop_connect_rate
+    if rate:
+        rate *= index / len(trunk._blocks)
+    return trunk._blocks[index](x, drop_connect_rate=rate)

@@ -57,7 +57,7 @@ from relocfw.core.errors import ConfigError
 from relocfw.core.options import integer_at_least
 from relocfw.model.dropout_backbone import Drop, DropoutBackbone, Maps
 from relocfw.model.pose_head import PoseHead
-from relocfw.plugins.efficientnet_lite import EfficientNetLite0
+from relocfw.plugins.efficientnet_lite import EfficientNetLite0, run_block
 
 # The up-convolutions' widths: ResNet34's stage widths below its deepest (512), the
 # decoder the paper's symmetric hourglass would have.
@@ -218,9 +218,4 @@ class Hourglass(DropoutBackbone):
         return tuple(maps)
 
     def block(self, index: int, x: torch.Tensor) -> torch.Tensor:
-        # The package's own stochastic depth, at the rate EfficientNetLite0 gives each
-        # block (growing with depth; training only).
-        rate = self.trunk._global_params.drop_connect_rate
-        if rate:
-            rate *= index / len(self.trunk._blocks)
-        return self.trunk._blocks[index](x, drop_connect_rate=rate)
+        return run_block(self.trunk, index, x)  # as backbone=efficientnet_lite0 runs it
