@@ -247,3 +247,16 @@ def test_mc_sampled_part(tmp_path):
     )
     assert [r["way"] for r in report["rows"]] == ["torch", "onnxruntime graph, masks as inputs"]
     assert all(r["ms"] > 0 for r in report["rows"])
+
+
+def test_learned_cost(tmp_path):
+    tiny = ["--size", "32", "--batch-size", "2", "--rounds", "1", "--steps", "1"]
+    sequence = ["--map-images", "20", "--window", "3", "--sequence-steps", "5"]
+    report = run_script("learned_cost.py", tmp_path / "l.json", *tiny, "--queries", "1", *sequence)
+    rows = {row["method"]: row for row in report["rows"]}
+    # The hourglass is the same encoder plus a decoder: more weights, never fewer.
+    assert (
+        rows["Hourglass"]["parameters_millions"]
+        > rows["PoseNet (EfficientNet-Lite0)"]["parameters_millions"]
+    )
+    assert report["sequence_model"]["fit_s"] > 0 and report["sequence_model"]["query_ms"] > 0
