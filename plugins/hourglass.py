@@ -42,7 +42,8 @@ quoted as its architecture.
   halves sizes rounding down, so an up-convolution's output can be one cell larger than
   its skip and is resized to the skip's size (bilinearly) before they are joined.
 - Dropout: `dropout_variant` as on EfficientNet-Lite0 (head, kendall, all); for "all"
-  a dropout follows every encoder block above the first, the head convolution and
+  a dropout follows every encoder block (the first too: on trunk_lower's output), the
+  head convolution and
   every decoder stage. The paper samples no dropout at test time.
 """
 
@@ -125,9 +126,11 @@ class UpStage(nn.Module):
         """[n, C_in, h, w] and the encoder's [n, C_skip, H, W] (H = 2h or 2h - 1) ->
         [n, out_channels + C_skip, H, W]."""
         up = self.up(coarse)
-        # When tracing (ONNX export) always resize: the graph must serve every size,
-        # and a resize to the same size is exact (bilinear weights 1 and 0).
-        if torch.jit.is_tracing() or up.shape[-2:] != skip.shape[-2:]:
+        # When exporting (ONNX, traced or through torch.export) always resize: the graph
+        # must serve every size, and a resize to the same size is exact (bilinear
+        # weights 1 and 0).
+        exporting = torch.jit.is_tracing() or torch.compiler.is_exporting()
+        if exporting or up.shape[-2:] != skip.shape[-2:]:
             up = nn.functional.interpolate(
                 up, size=skip.shape[-2:], mode="bilinear", align_corners=False
             )
@@ -145,7 +148,7 @@ class Hourglass(DropoutBackbone):
             and the head always start from random weights.
         mc_samples: Monte Carlo dropout samples at test time (0: off).
         dropout_variant: "head", "kendall" (also on the last decoder map, before the
-            pool) or "all" (after every encoder block above the first, the encoder's
+            pool) or "all" (after every encoder block, the first included, the encoder's
             head convolution and every decoder stage); the stem and the first block
             run once per query when sampling.
         decoder_channels: the three up-convolutions' widths, deepest first.

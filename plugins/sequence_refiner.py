@@ -7,7 +7,7 @@ them. The pose of a query is the last output of the recurrent network run over t
 descriptors of the `window` most recent frames of its recording, itself included: a
 query never reads a frame after it, in either direction mode, so the answer is one a
 robot can compute when the frame arrives. At the start of a recording fewer frames
-exist and the window is shorter (trained for: clips of every length 1..window). A
+exist and the window is shorter (trained for, see `SequenceRefiner.train`). A
 query whose name was seen before (the untimed warm-up query, or a second pass over a
 split) starts its recording's history afresh, so the same split gives the same answers.
 
@@ -101,6 +101,11 @@ class SequenceRefiner(PoseRefiner):
         features = check_features(descriptors)
         if len(views) != len(features):
             raise DataError(f"fit: {len(views)} map images but {len(features)} descriptors")
+        if all(view.name.startswith("map image ") for view in views):
+            raise DataError(
+                "refine=sequence needs the map images' frame names to know their recordings: "
+                "Relocalizer.fit(images, poses, frames=...) with the dataset's frames"
+            )
         self.zscore = ZScore().fit(features)
         positions = np.stack([v.pose.position for v in views])
         quaternions = np.stack([v.pose.quaternion for v in views])
@@ -114,7 +119,6 @@ class SequenceRefiner(PoseRefiner):
             ((positions - self.position_mean) / self.position_scale).astype(np.float32),
             quaternions.astype(np.float32),
             recordings_of([v.name for v in views]),
-            self.window,
         )
         self.network = self.train(clips, features.shape[1], quiet)
         self.history, self.seen = {}, {}
@@ -130,9 +134,18 @@ class SequenceRefiner(PoseRefiner):
             schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, self.steps)
             progress = Progress(self.steps, "training the sequence model", quiet=quiet)
             network.train()
+            # Train the outputs a query uses. A causal output at step t is a query with
+            # t + 1 frames of history, so full windows train every history length; a
+            # bidirectional output at t < last has seen later frames, which no query
+            # does, so only the last output of clips of every length is trained.
+            causal = self.direction == "causal"
             for _ in range(self.steps):
-                descriptors, positions, quaternions = clips.batch(rng, self.batch_size)
+                length = self.window if causal else int(rng.integers(1, self.window + 1))
+                descriptors, positions, quaternions = clips.batch(rng, self.batch_size, length)
                 predicted, rotation = network(descriptors)
+                if not causal:
+                    predicted, rotation = predicted[:, -1:], rotation[:, -1:]
+                    positions, quaternions = positions[:, -1:], quaternions[:, -1:]
                 loss = pose_loss(predicted, rotation, positions, quaternions, self.beta)
                 optimiser.zero_grad()
                 loss.backward()
@@ -141,6 +154,10 @@ class SequenceRefiner(PoseRefiner):
                 progress.advance()
             progress.close()
         return network.eval()
+
+    def reset(self) -> None:
+        """Forget every recording's history: a new pass over the queries begins."""
+        self.history, self.seen = {}, {}
 
     def refine(self, query: RefineQuery) -> Refined:
         if self.network is None:
@@ -200,7 +217,15 @@ class SequenceRefiner(PoseRefiner):
         scale = float(scale.item())
         if not (np.isfinite(position_mean).all() and np.isfinite(scale) and scale > 0):
             raise DataError("sequence state: position_mean or position_scale is NaN, inf or <= 0")
-        network = SequencePoseNetwork(len(mean), self.hidden, self.direction, self.input_dropout)
+        for key in ("mean", "std"):
+            if not torch.isfinite(state[key]).all():
+                raise DataError(f"sequence state: {key} holds NaN or infinite values")
+        if not (state["std"] > 0).all():
+            raise DataError("sequence state: std must be > 0")
+        with torch.random.fork_rng(devices=[]):  # building it draws initial weights
+            network = SequencePoseNetwork(
+                len(mean), self.hidden, self.direction, self.input_dropout
+            )
         weights = {k[len("network.") :]: v for k, v in state.items() if k.startswith("network.")}
         try:
             network.load_state_dict(weights, strict=True)
@@ -208,8 +233,10 @@ class SequenceRefiner(PoseRefiner):
             first = str(error).strip().splitlines()[0]
             raise DataError(
                 f"sequence state: the network's weights do not fit refine.hidden={self.hidden}, "
-                f"refine.direction={self.direction} ({first})"
+                f"refine.direction={self.direction} and {len(mean)}-d descriptors ({first})"
             ) from error
+        if not all(torch.isfinite(w).all() for w in weights.values()):
+            raise DataError("sequence state: the network's weights hold NaN or infinite values")
         self.zscore = ZScore().load_state(state)
         self.position_mean, self.position_scale = position_mean, scale
         self.network = network.eval()
@@ -232,9 +259,7 @@ def pose_loss(
 
 
 class ClipSampler:
-    """Random clips of consecutive map frames: one length per batch, drawn from
-    1..window, so the network learns to answer from a short history too (a
-    recording's first queries)."""
+    """Random clips of consecutive map frames, of one length per batch."""
 
     def __init__(
         self,
@@ -242,20 +267,17 @@ class ClipSampler:
         positions: np.ndarray,
         quaternions: np.ndarray,
         recordings: list[np.ndarray],
-        window: int,
     ) -> None:
         self.descriptors = descriptors
         self.positions = positions
         self.quaternions = quaternions
         self.recordings = recordings
-        self.window = window
         sizes = np.array([len(r) for r in recordings], dtype=np.float64)
         self.weights = sizes / sizes.sum()
 
     def batch(
-        self, rng: np.random.Generator, size: int
+        self, rng: np.random.Generator, size: int, length: int
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        length = int(rng.integers(1, self.window + 1))
         rows = []
         for recording in rng.choice(len(self.recordings), size=size, p=self.weights):
             frames = self.recordings[recording]

@@ -154,8 +154,9 @@ def check_sampling(backbone: Backbone, images: torch.Tensor, samples: int = 4) -
 def check_refiner(make_refiner: Callable[[], PoseRefiner], dim: int = 8) -> None:
     """A refiner fitted on a small map of two recordings answers every query with a
     `Refined` (finite position, unit quaternion, a float confidence, a bool fell_back,
-    seconds per part), leaves the query as it was, answers a query without reading the
-    queries after it, and, where it saves a state, answers the same after
+    seconds per part), leaves the query as it was, answers the same queries the same
+    way on a fresh instance whatever queries follow (no state shared between instances,
+    no randomness left unseeded), and, where it saves a state, answers the same after
     `load_state(state())` on a fresh instance.
 
     `make_refiner` builds a fresh, unfitted refiner; queries carry frame names

@@ -126,6 +126,11 @@ class PoseRefiner(ABC):
     def refine(self, query: RefineQuery) -> Refined:
         """The final pose of one query."""
 
+    def reset(self) -> None:  # noqa: B027 - optional hook, no-op default
+        """Forget what earlier queries left (a refiner that reads a query's recording
+        keeps its frames): `evaluate` calls it before its timed pass, after the untimed
+        warm-up query. The default keeps no per-query state."""
+
     def check_map(self, frames: Sequence[object]) -> None:  # noqa: B027 - optional hook
         """Raise ConfigError if this refiner cannot use these map images.
 

@@ -84,6 +84,7 @@ def evaluate(
     if warm_up and len(images):
         if refined:
             relocalizer.localize(images[0], cameras[0], names[0])
+            relocalizer.refiner.reset()  # the timed pass starts with no history
         else:
             relocalizer.localize(images[0])
     progress = Progress(len(frames), f"relocalizing ({method})", quiet=quiet)
@@ -155,9 +156,13 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
 
 
 def refined_answers(result: MethodResult) -> list[Localization]:
-    """The answers a refiner gave: those with a confidence or a fallback (an answer
-    without a refiner has neither)."""
-    return [a for a in result.answers if a.fell_back or np.isfinite(a.refine_confidence)]
+    """The answers a refiner gave: those with a confidence, a fallback or a refiner's
+    time (an answer without a refiner has none of them)."""
+    return [
+        a
+        for a in result.answers
+        if a.fell_back or np.isfinite(a.refine_confidence) or a.refine_seconds
+    ]
 
 
 def refine_columns(result: MethodResult) -> dict[str, float | int]:

@@ -99,9 +99,16 @@ def test_fallbacks_are_counted_in_the_summary(scene):
     assert summary["refine_median_confidence"] == pytest.approx(21.5)
     assert summary["refine_median_ms_solve"] == pytest.approx(1.5)
     plain = [
-        dataclasses.replace(a, refine_confidence=float("nan"), fell_back=False) for a in answers
+        dataclasses.replace(a, refine_confidence=float("nan"), fell_back=False, refine_seconds={})
+        for a in answers
     ]
     assert "refine_fell_back" not in summarise(MethodResult("plain", tuple(queries), tuple(plain)))
+    # A refiner without confidence or fallback (refine=sequence) still reports its time.
+    timed = [
+        dataclasses.replace(a, refine_confidence=float("nan"), fell_back=False) for a in answers
+    ]
+    summary = summarise(MethodResult("timed", tuple(queries), tuple(timed)))
+    assert summary["refine_median_ms_solve"] == pytest.approx(1.5)
 
 
 def test_a_refiner_needs_the_map_poses_and_one_entry_per_image(scene):

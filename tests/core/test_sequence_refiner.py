@@ -174,3 +174,20 @@ def test_a_saved_state_answers_as_the_fitted_refiner_and_a_bad_one_names_its_key
         SequenceRefiner(hidden=16).load_state({**state, "position_scale": torch.tensor(-1.0)})
     with pytest.raises(DataError, match="mean"):
         SequenceRefiner(hidden=16).load_state({k: v for k, v in state.items() if k != "mean"})
+
+
+def test_a_map_without_frame_names_is_refused_and_reset_forgets_the_history():
+    views, descriptors = map_of()
+    unnamed = [MapImage(f"map image {i}", v.image, v.pose) for i, v in enumerate(views)]
+    with pytest.raises(DataError, match="frame names"):
+        SequenceRefiner(steps=1).fit(unnamed, descriptors)
+    refiner = fitted(steps=20)
+    names = [f"seq-q/frame-{i}" for i in range(3)]
+    d = descriptors_of(trajectory(3, 0.2), np.random.default_rng(8), noise=0.1)
+    alone = refiner.refine(query("seq-q/frame-9", d[2])).pose.position
+    refiner.reset()
+    answers(refiner, names[:2], d[:2])
+    after_history = refiner.refine(query("seq-q/frame-9", d[2])).pose.position
+    refiner.reset()
+    np.testing.assert_allclose(refiner.refine(query("seq-q/frame-9", d[2])).pose.position, alone)
+    assert not np.allclose(after_history, alone)

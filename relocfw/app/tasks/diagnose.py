@@ -222,6 +222,10 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     write_skipped(done.dataset, done.run_dir)
     method = done.method
     relocalizer = on_engine(cfg, method.relocalizer(device), done.checkpoint, device, done.train[1])
+    # The refiner is not applied per window (the note below), so it is not fitted either:
+    # fitting one can take minutes (refine=sequence trains a network, refine=features
+    # builds a 3-D map).
+    relocalizer.refiner = None
     map_poses = [f.pose for f in done.train[0]]
     map_features = relocalizer.fit(done.train[1], map_poses, quiet=quiet)
     refine = choices.get("refine", "none")

@@ -87,11 +87,20 @@ def localize_images(
     # Any object with `localize` works; a Relocalizer's options say how many at once.
     options = getattr(relocalizer, "options", None)
     group = getattr(options, "queries_at_once", 1)
+    # A refiner that reads a query's recording (refine=sequence) gets each image's
+    # folder as its recording and the images in the order given (sorted by name).
+    refined = getattr(relocalizer, "refiner", None) is not None
     for start in range(0, len(images), group):
         # Images are read a group at a time, so memory stays flat however many.
-        pixels = [read_rgb(path) for path in images[start : start + group]]
-        if group == 1:
+        paths = images[start : start + group]
+        pixels = [read_rgb(path) for path in paths]
+        names = [f"{path.parent.name}/{path.stem}" for path in paths]
+        if group == 1 and refined:
+            answers.append(relocalizer.localize(pixels[0], name=names[0]))
+        elif group == 1:
             answers.append(relocalizer.localize(pixels[0]))
+        elif refined:
+            answers += relocalizer.localize_many(pixels, group, names=names)
         else:
             answers += relocalizer.localize_many(pixels, group)
         progress.advance(len(pixels))
