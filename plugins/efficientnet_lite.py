@@ -75,7 +75,7 @@ class EfficientNetLite0(DropoutBackbone):
         self.head = PoseHead(channels, self.feature_dim, self.dropout_rate)
 
     def normalise(self, images: torch.Tensor) -> torch.Tensor:
-        return images * 2.0 - 1.0  # EfficientNet-Lite was trained on pixels in [-1, 1]
+        return lite_pixels(images)
 
     def trunk_lower(self, x: torch.Tensor) -> torch.Tensor:
         return self.lower(x)
@@ -85,8 +85,7 @@ class EfficientNetLite0(DropoutBackbone):
 
     def lower(self, x: torch.Tensor) -> torch.Tensor:
         """Stem and the first MBConv block: below every place a dropout can sit."""
-        x = self.trunk._swish(self.trunk._bn0(self.trunk._conv_stem(x)))
-        return self.block(0, x)
+        return stem_and_first_block(self.trunk, x)
 
     def upper(self, x: torch.Tensor, drop: Drop | None = None) -> torch.Tensor:
         """The other blocks and the head convolution; `drop` after each, if given."""
@@ -107,3 +106,15 @@ def run_block(trunk: torch.nn.Module, index: int, x: torch.Tensor) -> torch.Tens
     if rate:
         rate *= index / len(trunk._blocks)
     return trunk._blocks[index](x, drop_connect_rate=rate)
+
+
+def lite_pixels(images: torch.Tensor) -> torch.Tensor:
+    """Images in [0, 1] -> the [-1, 1] range EfficientNet-Lite was trained on."""
+    return images * 2.0 - 1.0
+
+
+def stem_and_first_block(trunk: torch.nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """An EfficientNet-Lite trunk's stem and first MBConv block, the part below every
+    place a dropout variant can sit (so Monte Carlo sampling runs it once per query)."""
+    x = trunk._swish(trunk._bn0(trunk._conv_stem(x)))
+    return run_block(trunk, 0, x)

@@ -58,7 +58,12 @@ from relocfw.core.errors import ConfigError
 from relocfw.core.options import integer_at_least
 from relocfw.model.dropout_backbone import Drop, DropoutBackbone, Maps
 from relocfw.model.pose_head import PoseHead
-from relocfw.plugins.efficientnet_lite import EfficientNetLite0, run_block
+from relocfw.plugins.efficientnet_lite import (
+    EfficientNetLite0,
+    lite_pixels,
+    run_block,
+    stem_and_first_block,
+)
 
 # The up-convolutions' widths: ResNet34's stage widths below its deepest (512), the
 # decoder the paper's symmetric hourglass would have.
@@ -186,12 +191,11 @@ class Hourglass(DropoutBackbone):
         self.head = PoseHead(coarse, self.feature_dim, self.dropout_rate)
 
     def normalise(self, images: torch.Tensor) -> torch.Tensor:
-        return images * 2.0 - 1.0  # EfficientNet-Lite was trained on pixels in [-1, 1]
+        return lite_pixels(images)  # the encoder's own input range
 
     def trunk_lower(self, x: torch.Tensor) -> torch.Tensor:
         """Stem and the first MBConv block: below every place a dropout can sit."""
-        x = self.trunk._swish(self.trunk._bn0(self.trunk._conv_stem(x)))
-        return self.block(0, x)
+        return stem_and_first_block(self.trunk, x)
 
     def trunk_upper(self, below: torch.Tensor, drop: Drop | None = None) -> Maps:
         """The decoder's maps, coarsest first (strides 16, 8, 4); the last is pooled."""

@@ -178,7 +178,9 @@ class Relocalizer:
     ) -> Relocalizer:
         """This pipeline with another network answering for the same one (e.g. its ONNX
         export), other options and/or another search: the same fitted map, map poses
-        and metadata."""
+        and metadata. The refiner is the same object too, history included (a
+        sequence refiner's frames of each recording): query one of the two pipelines,
+        or call `refiner.reset()` before switching, as evaluation does."""
         swapped = Relocalizer(
             backbone or self.backbone,
             self.index,

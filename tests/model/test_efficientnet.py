@@ -1,10 +1,7 @@
-import importlib
-
 import pytest
 import torch
 
 from relocfw.core.errors import ConfigError
-from relocfw.plugins import efficientnet_lite
 from relocfw.plugins.efficientnet_lite import EfficientNetLite0
 
 
@@ -25,14 +22,7 @@ def test_pretrained_weights_load_and_head_shapes():
     assert sampled(torch.rand(2, 3, 64, 64)).position_spread.shape == (2,)
 
 
-def test_missing_package_names_the_extra(monkeypatch):
-    real = importlib.import_module
-
-    def no_efficientnet(name, *args):
-        if name.startswith("efficientnet_lite"):
-            raise ImportError(name)
-        return real(name, *args)
-
-    monkeypatch.setattr(efficientnet_lite.importlib, "import_module", no_efficientnet)
+@pytest.mark.usefixtures("without_efficientnet_packages")
+def test_missing_package_names_the_extra():
     with pytest.raises(ConfigError, match=r"relocfw\[efficientnet\]"):
         EfficientNetLite0(input_size=64)

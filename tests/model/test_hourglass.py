@@ -1,8 +1,6 @@
 """backbone=hourglass: EfficientNet-Lite0 encoder, up-convolutional decoder joined to the
 encoder by skips, PoseNet's head (plugins/hourglass.py)."""
 
-import importlib
-
 import cv2
 import numpy as np
 import pytest
@@ -10,7 +8,6 @@ import torch
 
 from relocfw.core.contracts import check_backbone, check_sampling
 from relocfw.core.errors import ConfigError
-from relocfw.plugins import efficientnet_lite
 from relocfw.plugins.efficientnet_lite import EfficientNetLite0
 from relocfw.plugins.hourglass import Hourglass
 from tests.cli_runs import relocfw
@@ -177,15 +174,8 @@ def test_a_bad_decoder_is_refused_naming_the_option(channels, message):
         Hourglass(input_size=SIDE, **{**SMALL, "decoder_channels": channels})
 
 
-def test_a_missing_package_names_the_backbone_and_the_extra(monkeypatch):
-    real = importlib.import_module
-
-    def no_efficientnet(name, *args):
-        if name.startswith("efficientnet_lite"):
-            raise ImportError(name)
-        return real(name, *args)
-
-    monkeypatch.setattr(efficientnet_lite.importlib, "import_module", no_efficientnet)
+@pytest.mark.usefixtures("without_efficientnet_packages")
+def test_a_missing_package_names_the_backbone_and_the_extra():
     with pytest.raises(ConfigError, match=r"backbone=hourglass .*relocfw\[efficientnet\]"):
         Hourglass(input_size=SIDE)
 
