@@ -68,7 +68,7 @@ class SequenceRefiner(PoseRefiner):
 
     def __init__(
         self,
-        window: int = 10,
+        window: int = 20,
         direction: str = "causal",
         hidden: int = 256,
         steps: int = 1500,
