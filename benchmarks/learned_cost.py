@@ -9,12 +9,13 @@ in one process so that a slow moment of the machine falls on every method alike:
 - query: one centre crop through the network in inference mode (ms; what the
   centre-crop row costs per query beside image decoding);
 - sequence model: training the LSTM on a map of `--map-images` descriptors (seconds,
-  refine=sequence's defaults) and one query's refine() on a full window (ms);
+  refine=sequence's settings but the window, `--window`) and one query's refine() on
+  a full window (ms);
 - memory: parameters (millions) and their float32 size (MB).
 
 Prints a table, writes JSON.
 
-    .venv/bin/python benchmarks/learned_cost.py --rounds 5
+    .venv/bin/python benchmarks/learned_cost.py --rounds 5 --window 10
 """
 
 from __future__ import annotations
@@ -113,7 +114,7 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3, help="training steps timed per round")
     parser.add_argument("--queries", type=int, default=20, help="queries timed per round")
     parser.add_argument("--map-images", type=int, default=400)
-    parser.add_argument("--window", type=int, default=10)
+    parser.add_argument("--window", type=int, default=20, help="refine.window (default 20)")
     parser.add_argument("--sequence-steps", type=int, default=1500, help="refine.steps")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/learned_cost.json"))
     args = parser.parse_args()
