@@ -21,6 +21,7 @@ Prints a table, writes JSON.
 from __future__ import annotations
 
 import argparse
+import inspect
 import platform
 import statistics
 import time
@@ -114,8 +115,14 @@ def main() -> None:
     parser.add_argument("--steps", type=int, default=3, help="training steps timed per round")
     parser.add_argument("--queries", type=int, default=20, help="queries timed per round")
     parser.add_argument("--map-images", type=int, default=400)
-    parser.add_argument("--window", type=int, default=20, help="refine.window (default 20)")
-    parser.add_argument("--sequence-steps", type=int, default=1500, help="refine.steps")
+    # The sequence model's defaults are refine=sequence's own, read from its constructor.
+    refiner_defaults = inspect.signature(SequenceRefiner).parameters
+    parser.add_argument(
+        "--window", type=int, default=refiner_defaults["window"].default, help="refine.window"
+    )
+    parser.add_argument(
+        "--sequence-steps", type=int, default=refiner_defaults["steps"].default, help="refine.steps"
+    )
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/learned_cost.json"))
     args = parser.parse_args()
     torch.manual_seed(0)
