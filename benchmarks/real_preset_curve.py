@@ -68,6 +68,20 @@ CANDIDATES = {
     "EfficientNet-Lite0 ImageNet 128 px, 500 steps": efficientnet(128, 500),
     "EfficientNet-Lite0 ImageNet 128 px, 1000 steps": efficientnet(128, 1000),
     "GoogLeNet scratch 128 px, 1000 steps": googlenet(128, 1000),
+    # The demo preset (normalised position frame, beta 10) trained longer, with its SGD
+    # or with Adam: the candidates for GoogLeNet from scratch on real images (issue 24).
+    "GoogLeNet scratch 96 px, 1000 steps (demo, longer)": [
+        "preset=demo",
+        "train.iterations=1000",
+        "train.checkpoint_every=200",
+    ],
+    "GoogLeNet scratch 96 px, 1000 steps, Adam 1e-3": [
+        "preset=demo",
+        "train.iterations=1000",
+        "train.checkpoint_every=200",
+        "train.optimizer=adam",
+        "train.lr=1e-3",
+    ],
     "preset=real_cpu_quick": ["preset=real_cpu_quick"],
     "preset=real_cpu": ["preset=real_cpu"],
 }

@@ -34,30 +34,21 @@ from relocfw.core.options import integer_at_least
 from relocfw.core.standardise import ZScore, k_nearest
 from relocfw.core.values import Crop, CropWithPose, Pose
 from relocfw.core.window_rules import (
+    NEEDS_NEIGHBOURS,
+    RULE_NAMES,
     Choice,
     Windows,
     along_axis,
-    centre,
-    consensus,
     deviations,
-    gated,
-    min_distance,
-    retrieval_consistency,
-    robust_mean,
-    soft_min_distance,
+    rule_named,
 )
-
-# Rules that name a window, and rules that blend every window's pose.
-WINDOW_RULES = ("consensus", "retrieval_consistency", "gated", "min_distance", "centre")
-BLEND_RULES = ("mean", "robust_mean", "soft_min_distance")
-NEEDS_NEIGHBOURS = ("retrieval_consistency",)
 
 
 class WindowRuleSearch(CropSearch):
     """Every offset scored; the answer a selection rule gives from their answers.
 
     Args:
-        rule: one of WINDOW_RULES or BLEND_RULES.
+        rule: one of relocfw.core.window_rules.RULE_NAMES.
         neighbours: map images per window for retrieval_consistency (the study's 5).
         threshold: gated's threshold on the query's nearest relative map distance
             (in map-image units), chosen on validation (docs/results/beyond-the-paper.md).
@@ -74,9 +65,8 @@ class WindowRuleSearch(CropSearch):
         threshold: float = 1.0,
         tau: float = 1.0,
     ) -> None:
-        rules = WINDOW_RULES + BLEND_RULES
-        if rule not in rules:
-            raise ConfigError(f"crop.rule must be one of {', '.join(rules)}, got {rule!r}")
+        if rule not in RULE_NAMES:
+            raise ConfigError(f"crop.rule must be one of {', '.join(RULE_NAMES)}, got {rule!r}")
         self.rule = rule
         self.neighbours = integer_at_least("crop.neighbours", neighbours, 1)
         self.threshold = float(threshold)
@@ -85,16 +75,9 @@ class WindowRuleSearch(CropSearch):
         self.tau = float(tau)
         if not self.tau > 0:
             raise ConfigError(f"crop.tau must be > 0 (inf: the plain mean), got {tau!r}")
-        self.rule_function: Callable[[Windows], Choice] = {
-            "retrieval_consistency": retrieval_consistency,
-            "consensus": consensus,
-            "gated": lambda w: gated(w, self.threshold),
-            "min_distance": min_distance,
-            "centre": centre,
-            "mean": lambda w: soft_min_distance(w, np.inf),
-            "robust_mean": robust_mean,
-            "soft_min_distance": lambda w: soft_min_distance(w, self.tau),
-        }[rule]
+        self.rule_function: Callable[[Windows], Choice] = rule_named(
+            rule, tau=self.tau, threshold=self.threshold
+        )
         self.standardise: ZScore | None = None
         self.map_descriptors: np.ndarray | None = None
         self.map_positions: np.ndarray | None = None

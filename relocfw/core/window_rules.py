@@ -6,7 +6,7 @@ crop answers with the middle one. A rule here is any function of what is known a
 query time (distances, poses, where each window sits, the poses of each window's
 nearest map images) that returns a pose. The rules are pure numpy, so the study of
 recorded windows (relocfw.report.rule_study) and the query-time plugin
-(relocfw.plugins.rule_crop) run the very same code.
+(plugins/window_rule_crop.py, `crop=rule`) run the very same code.
 
 Distances are compared across models through `distance_scale` (the map images' own
 median map distance), so a threshold or temperature chosen on a validation model
@@ -300,11 +300,31 @@ class LearnedSelector:
 
 
 Rule = Callable[[Windows], Choice]
-# Rules without settings; the others take a setting chosen on validation.
-FIXED_RULES: Mapping[str, Rule] = {
-    "centre": centre,
-    "min_distance": min_distance,
-    "robust_mean": robust_mean,
-    "consensus": consensus,
-    "retrieval_consistency": retrieval_consistency,
-}
+# Every rule by its configuration name (crop=rule crop.rule=NAME), in one table that
+# the plugin and the study share. Rules that name a window come first, then the blends.
+WINDOW_RULES = ("centre", "min_distance", "consensus", "retrieval_consistency", "gated")
+BLEND_RULES = ("mean", "robust_mean", "soft_min_distance")
+RULE_NAMES = WINDOW_RULES + BLEND_RULES
+NEEDS_NEIGHBOURS = ("retrieval_consistency",)  # each window's nearest map images
+
+
+def rule_named(name: str, tau: float = 1.0, threshold: float = 1.0) -> Rule:
+    """The rule called `name` (one of RULE_NAMES), with its setting where it has one.
+
+    Args:
+        tau: soft_min_distance's temperature (map-image units; inf is `mean`).
+        threshold: gated's threshold on the query's nearest relative map distance.
+    """
+    rules: Mapping[str, Rule] = {
+        "centre": centre,
+        "min_distance": min_distance,
+        "consensus": consensus,
+        "retrieval_consistency": retrieval_consistency,
+        "gated": lambda windows: gated(windows, threshold),
+        "mean": lambda windows: soft_min_distance(windows, np.inf),
+        "robust_mean": robust_mean,
+        "soft_min_distance": lambda windows: soft_min_distance(windows, tau),
+    }
+    if name not in rules:
+        raise ValueError(f"unknown rule {name!r}; known: {', '.join(RULE_NAMES)}")
+    return rules[name]

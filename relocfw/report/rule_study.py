@@ -21,11 +21,11 @@ from typing import Any
 import numpy as np
 
 from relocfw.core.window_rules import (
-    FIXED_RULES,
     Choice,
     LearnedSelector,
     Windows,
     gated,
+    rule_named,
     soft_min_distance,
     window_choice,
 )
@@ -104,18 +104,18 @@ def fitted_selector(queries: Sequence[RecordedQuery], seed: int) -> LearnedSelec
 def rules_of(settings: ChosenSettings, selector: LearnedSelector) -> dict[str, Callable]:
     """Every rule the study answers with, by its table name."""
     return {
-        REFERENCE: FIXED_RULES["centre"],
-        "min map distance (paper)": FIXED_RULES["min_distance"],
-        f"soft min distance (tau={settings.temperature:g})": lambda w: soft_min_distance(
-            w, settings.temperature
+        REFERENCE: rule_named("centre"),
+        "min map distance (paper)": rule_named("min_distance"),
+        f"soft min distance (tau={settings.temperature:g})": rule_named(
+            "soft_min_distance", tau=settings.temperature
         ),
-        "mean of all windows": lambda w: soft_min_distance(w, np.inf),
-        "robust mean pose": FIXED_RULES["robust_mean"],
-        "consensus window": FIXED_RULES["consensus"],
-        "retrieval consistency": FIXED_RULES["retrieval_consistency"],
+        "mean of all windows": rule_named("mean"),
+        "robust mean pose": rule_named("robust_mean"),
+        "consensus window": rule_named("consensus"),
+        "retrieval consistency": rule_named("retrieval_consistency"),
         "learned selector": selector,
-        f"gated (threshold={settings.gate_threshold:.3g})": lambda w: gated(
-            w, settings.gate_threshold
+        f"gated (threshold={settings.gate_threshold:.3g})": rule_named(
+            "gated", threshold=settings.gate_threshold
         ),
     }
 

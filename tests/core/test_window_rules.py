@@ -7,7 +7,6 @@ from relocfw.core.geometry import mean_quaternion, orientation_error_deg
 from relocfw.core.values import Pose
 from relocfw.core.window_rules import (
     FEATURE_NAMES,
-    FIXED_RULES,
     LearnedSelector,
     Windows,
     centre,
@@ -18,6 +17,7 @@ from relocfw.core.window_rules import (
     retrieval_consistency,
     robust_mean,
     rotation_median,
+    rule_named,
     soft_min_distance,
     window_features,
 )
@@ -128,7 +128,7 @@ def test_centre_and_min_distance_answer_their_window():
     assert nearest.window == 3  # the first of the tied nearest windows
     assert np.array_equal(nearest.position, positions[3])
     assert np.allclose(nearest.quaternion, -quaternions[3]) and nearest.quaternion[0] > 0
-    assert FIXED_RULES["centre"] is centre and FIXED_RULES["min_distance"] is min_distance
+    assert rule_named("centre") is centre and rule_named("min_distance") is min_distance
 
 
 def test_soft_min_distance_spans_min_distance_to_the_plain_mean():
@@ -242,7 +242,7 @@ def test_retrieval_consistency_picks_the_window_its_map_images_agree_with():
     chosen = retrieval_consistency(windows)
     assert chosen.window == agreeing
     assert np.array_equal(chosen.position, positions[agreeing])
-    assert FIXED_RULES["retrieval_consistency"] is retrieval_consistency
+    assert rule_named("retrieval_consistency") is retrieval_consistency
 
 
 def test_retrieval_consistency_without_neighbours_names_what_it_needs():
@@ -341,3 +341,18 @@ def test_learned_selector_must_be_fitted_first():
     with pytest.raises(ValueError, match="fit first"):
         LearnedSelector()(windows)
     assert LearnedSelector().fitted_on == ()
+
+
+def test_rule_named_passes_its_setting_and_names_the_known_rules():
+    windows, _ = cluster_and_outliers()
+    for tau in (0.01, 1.0):
+        expected = soft_min_distance(windows, tau)
+        got = rule_named("soft_min_distance", tau=tau)(windows)
+        assert np.array_equal(got.position, expected.position)
+    plain_mean = soft_min_distance(windows, np.inf)
+    assert np.array_equal(rule_named("mean")(windows).position, plain_mean.position)
+    for threshold in (0.0, 1e9):
+        expected = gated(windows, threshold)
+        assert rule_named("gated", threshold=threshold)(windows).window == expected.window
+    with pytest.raises(ValueError, match="unknown rule 'nearest'.*soft_min_distance"):
+        rule_named("nearest")
