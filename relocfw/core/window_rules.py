@@ -302,9 +302,10 @@ class LearnedSelector:
 Rule = Callable[[Windows], Choice]
 # Every rule by its configuration name (crop=rule crop.rule=NAME), in one table that
 # the plugin and the study share. Rules that name a window come first, then the blends.
-WINDOW_RULES = ("centre", "min_distance", "consensus", "retrieval_consistency", "gated")
-BLEND_RULES = ("mean", "robust_mean", "soft_min_distance")
-RULE_NAMES = WINDOW_RULES + BLEND_RULES
+RULE_NAMES = (
+    *("centre", "min_distance", "consensus", "retrieval_consistency", "gated"),
+    *("mean", "robust_mean", "soft_min_distance"),
+)
 NEEDS_NEIGHBOURS = ("retrieval_consistency",)  # each window's nearest map images
 
 

@@ -7,6 +7,7 @@ from relocfw.core.geometry import mean_quaternion, orientation_error_deg
 from relocfw.core.values import Pose
 from relocfw.core.window_rules import (
     FEATURE_NAMES,
+    RULE_NAMES,
     LearnedSelector,
     Windows,
     centre,
@@ -356,3 +357,5 @@ def test_rule_named_passes_its_setting_and_names_the_known_rules():
         assert rule_named("gated", threshold=threshold)(windows).window == expected.window
     with pytest.raises(ValueError, match="unknown rule 'nearest'.*soft_min_distance"):
         rule_named("nearest")
+    for name in RULE_NAMES:  # the names crop.rule accepts all resolve
+        assert callable(rule_named(name))
