@@ -1,0 +1,220 @@
+"""How close each inference engine runs the paper's network to the CPU's arithmetic peak.
+
+Issue 23 asks for the paper's method (the GA, about 22 plain network passes per query)
+at least 2x faster than torch. A query is 97% network passes (a cProfile of the
+onnxruntime GA), so the question is how many multiply-adds per second an engine gets
+out of the CPU. This script measures, on the same machine in one round robin:
+
+- the CPU's peak: a large square matrix product (torch, every thread), the best a
+  library gets from these cores in float32 (and in bfloat16, where the CPU has it);
+- GoogLeNet PoseNet at the paper's 224 px on a batch of `--batch` crops (a GA
+  generation is 5-6 new crops) on each engine: torch float32 in channels-last (what
+  relocfw's torch path runs), onnxruntime float32 (relocfw's default engine), the same
+  with the batch split over two one-thread sessions, OpenVINO float32 (if installed),
+  torch bfloat16 autocast, and onnxruntime int8 static (relocfw's recipe);
+- per engine: ms per batch, multiply-adds per second, its share of the float32 peak,
+  and its speed-up over torch; and what float32 throughput a 2x speed-up over torch
+  would need, as a share of the peak.
+
+Weights are freshly initialised (time does not depend on them).
+
+    .venv/bin/python benchmarks/engine_ceiling.py --repeats 15
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from common import device_name, render_views, write_json  # benchmarks/, the script's folder
+from engine_cost import network
+
+from relocfw.core.multiply_adds import multiply_adds
+from relocfw.model.onnx_engine import EngineOptions, onnx_engine
+
+
+def cpu_flags() -> list[str]:
+    """The CPU's vector extensions that matter here (Linux only)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return []
+    lines = [line for line in text.splitlines() if line.startswith("flags")]
+    flags = lines[0].split(":", 1)[1].split() if lines else []
+    wanted = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_bf16")
+    return [flag for flag in wanted if flag in flags]
+
+
+def matmul_peak(dtype: torch.dtype, size: int, repeats: int) -> float:
+    """Multiply-adds per second of a size x size matrix product, the best of `repeats`
+    runs and, in float32, of torch's and numpy's BLAS (on AMD CPUs one of them may
+    not pick its widest kernels)."""
+    generator = torch.Generator().manual_seed(0)
+    a = torch.randn(size, size, generator=generator).to(dtype)
+    b = torch.randn(size, size, generator=generator).to(dtype)
+    products: list[Callable] = [lambda: a @ b]
+    if dtype == torch.float32:
+        a_numpy, b_numpy = a.numpy(), b.numpy()
+        products.append(lambda: a_numpy @ b_numpy)
+    best = float("inf")
+    with torch.inference_mode():
+        for product in products:
+            product()
+            for _ in range(repeats):
+                started = time.perf_counter()
+                product()
+                best = min(best, time.perf_counter() - started)
+    return size**3 / best
+
+
+def onnx_session(path: Path, threads: int):  # noqa: ANN201 - an onnxruntime session
+    import onnxruntime
+
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def engines(batch: torch.Tensor, folder: Path, calibration: list) -> dict[str, Callable]:
+    """One call per engine, each running the same network on `batch`."""
+    net = network("paper")
+    channels_last = batch.contiguous(memory_format=torch.channels_last)
+    cores = torch.get_num_threads()
+    found: dict[str, Callable] = {"torch float32": lambda: net(channels_last)}
+
+    def bfloat16() -> object:
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            return net(channels_last)
+
+    found["torch bfloat16 autocast"] = bfloat16
+    onnx_engine(net, folder / "net.pt", EngineOptions())(batch)  # exports the float graph
+    float_graph = next(folder.glob("net.pt-full.onnx"))
+    whole = onnx_session(float_graph, cores)
+    name = whole.get_inputs()[0].name
+    images = batch.numpy()
+    found["onnxruntime float32"] = lambda: whole.run(None, {name: images})
+    halves = [onnx_session(float_graph, 1) for _ in range(2)]
+    split = len(images) // 2
+
+    def split_batch() -> None:
+        # Two one-thread sessions on half the batch each: parallel over images
+        # instead of inside each convolution (onnxruntime releases the GIL).
+        other = threading.Thread(target=halves[1].run, args=(None, {name: images[split:]}))
+        other.start()
+        halves[0].run(None, {name: images[:split]})
+        other.join()
+
+    found["onnxruntime float32, 2 x 1 thread"] = split_batch
+    try:
+        import openvino
+
+        compiled = openvino.Core().compile_model(
+            str(float_graph),
+            "CPU",
+            {"INFERENCE_NUM_THREADS": cores, "INFERENCE_PRECISION_HINT": "f32"},
+        )
+        request = compiled.create_infer_request()
+        found["openvino float32"] = lambda: request.infer({0: images})
+    except ImportError:
+        print("openvino is not installed: its row is left out")
+    int8 = onnx_engine(net, folder / "net.pt", EngineOptions(int8="static"), calibration)
+    found["onnxruntime int8 static"] = lambda: int8(batch)
+    return found
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--batch", type=int, default=6, help="crops per pass")
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--matmul-size", type=int, default=3072)
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/engine_ceiling.json"))
+    args = parser.parse_args()
+    started = time.perf_counter()
+    generator = torch.Generator().manual_seed(0)
+    batch = torch.randn(args.batch, 3, 224, 224, generator=generator)
+    peak = {"float32": matmul_peak(torch.float32, args.matmul_size, 5)}
+    if "avx512_bf16" in cpu_flags() or "amx_bf16" in cpu_flags():
+        peak["bfloat16"] = matmul_peak(torch.bfloat16, args.matmul_size, 5)
+    counted = network("paper")
+    with torch.inference_mode():
+        work = multiply_adds(counted, lambda: counted(batch))
+    with tempfile.TemporaryDirectory(prefix="relocfw-ceiling-") as folder:
+        calls = engines(batch, Path(folder), render_views(20, 0)[0])
+        times: dict[str, list[float]] = {name: [] for name in calls}
+        with torch.inference_mode():
+            for call in calls.values():
+                call()
+            for repeat in range(args.repeats):
+                order = list(calls)
+                shift = repeat % len(order)
+                for name in order[shift:] + order[:shift]:
+                    begun = time.perf_counter()
+                    calls[name]()
+                    times[name].append(time.perf_counter() - begun)
+    # Measured again after the engines, in case the clock moved while they ran.
+    for kind, dtype in (("float32", torch.float32), ("bfloat16", torch.bfloat16)):
+        if kind in peak:
+            peak[kind] = max(peak[kind], matmul_peak(dtype, args.matmul_size, 5))
+    torch_ms = 1000 * float(np.median(times["torch float32"]))
+    rows = []
+    for name, spent in times.items():
+        ms = 1000 * float(np.median(spent))
+        rate = work / (ms / 1000)
+        rows.append(
+            {
+                "engine": name,
+                "ms_per_batch": ms,
+                "giga_multiply_adds_per_s": rate / 1e9,
+                "share_of_float32_peak": rate / peak["float32"],
+                "speedup_over_torch": torch_ms / ms,
+            }
+        )
+    needed = 2 * work / (torch_ms / 1000)
+    report = {
+        "batch": args.batch,
+        "repeats": args.repeats,
+        "network": "GoogLeNet PoseNet, 224 px",
+        "multiply_adds_per_batch": work,
+        "peak_giga_multiply_adds_per_s": {k: v / 1e9 for k, v in peak.items()},
+        "two_x_torch_needs_giga_multiply_adds_per_s": needed / 1e9,
+        "two_x_torch_needs_share_of_float32_peak": needed / peak["float32"],
+        "rows": rows,
+        "device": device_name("cpu"),
+        "machine": platform.processor() or platform.machine(),
+        "cpu_flags": cpu_flags(),
+        "cores": os.cpu_count(),
+        "torch_version": torch.__version__,
+        "load_average_1min": os.getloadavg()[0],
+        "seconds": time.perf_counter() - started,
+    }
+    print(f"CPU flags: {' '.join(cpu_flags())}; torch threads {torch.get_num_threads()}")
+    for kind, value in peak.items():
+        size = args.matmul_size
+        print(f"peak {kind} (matrix product {size}): {value / 1e9:.1f} G multiply-adds/s")
+    print(f"GoogLeNet 224 px, batch {args.batch}: {work / 1e9:.2f} G multiply-adds")
+    print("| engine | ms per batch | G multiply-adds/s | share of float32 peak | x torch |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        print(
+            f"| {r['engine']} | {r['ms_per_batch']:.1f} | {r['giga_multiply_adds_per_s']:.1f} | "
+            f"{100 * r['share_of_float32_peak']:.0f}% | {r['speedup_over_torch']:.2f}x |"
+        )
+    print(
+        f"2x torch needs {needed / 1e9:.1f} G multiply-adds/s: "
+        f"{100 * needed / peak['float32']:.0f}% of the float32 peak"
+    )
+    write_json(report, args.out)
+
+
+if __name__ == "__main__":
+    main()
