@@ -47,6 +47,7 @@ class Int8(Enum):
     none = "none"
     dynamic = "dynamic"
     static = "static"
+    static_8bit = "static_8bit"
 
 
 class Baseline(Enum):

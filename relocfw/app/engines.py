@@ -23,6 +23,7 @@ from relocfw.core.errors import ConfigError
 from relocfw.core.pipeline import Relocalizer
 from relocfw.model.onnx_backbone import OnnxBackbone
 from relocfw.model.onnx_engine import (
+    STATIC_MODES,
     EngineOptions,
     EngineUnavailableError,
     graph_path,
@@ -120,10 +121,10 @@ def keep_graphs_beside(relocalizer: Relocalizer, checkpoint: Path, model: Path) 
     from) beside a model file, so task=localize can use them: they cannot be remade
     there, having no map images to calibrate on."""
     backbone = relocalizer.backbone
-    if not isinstance(backbone, OnnxBackbone) or backbone.int8 != "static":
+    if not isinstance(backbone, OnnxBackbone) or backbone.int8 not in STATIC_MODES:
         return
     for kind in backbone.sessions:
-        for mode in ("none", "static"):
+        for mode in ("none", backbone.int8):
             source = graph_path(checkpoint, KINDS[kind], mode)
             if source.is_file():
                 with atomic_write(graph_path(model, KINDS[kind], mode), "wb") as stream:

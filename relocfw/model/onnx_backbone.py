@@ -33,7 +33,7 @@ class OnnxBackbone(Backbone):
         sessions: onnxruntime sessions by graph kind: "full" (required), "maps",
             "lower" (relocfw.model.onnx_graphs). A missing kind's passes run in torch.
         description: how the engine runs, for reports (e.g. "onnxruntime, 2 threads").
-        int8: the graphs' quantisation ("none", "dynamic", "static").
+        int8: the graphs' quantisation (relocfw.model.onnx_engine.INT8_MODES).
     """
 
     # Inputs cross to numpy as they are: NCHW contiguous is what the graphs expect.

@@ -11,7 +11,9 @@ EngineUnavailableError with the reason; the CLI then runs torch and says why in 
 Int8 (`EngineOptions.int8`): onnxruntime's quantisation of the float graphs, written
 as `OWNER-<kind>.int8-<mode>.onnx`, tied to the float graph they were made from.
 "static" calibrates activations on map images (training data, never queries) and
-needs them; "dynamic" quantises weights only.
+needs them, with 7-bit weights that give the same answers on every x86 CPU;
+"static_8bit" is the same with 8-bit weights, only on CPUs with VNNI (on AVX2 alone
+onnxruntime's u8 x s8 products saturate with them); "dynamic" quantises weights only.
 Quantised graphs answer differently from torch by design, so they are checked for
 finite answers only; what they cost in accuracy is measured (docs/engine.md).
 """
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import platform
 import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -53,7 +56,8 @@ from relocfw.model.onnx_graphs import (
     write_graph,
 )
 
-INT8_MODES = ("none", "dynamic", "static")
+INT8_MODES = ("none", "dynamic", "static", "static_8bit")
+STATIC_MODES = ("static", "static_8bit")  # calibrated on map images
 INT8_KEY = "relocfw.int8"
 RECIPE_KEY = "relocfw.int8_recipe"
 # How static graphs are quantised; a cached graph of another recipe is rebuilt. 7-bit
@@ -61,9 +65,11 @@ RECIPE_KEY = "relocfw.int8_recipe"
 # saturate in 16 bits) they halved int8's pose deviation from float32 on Red Kitchen
 # training frames (median 3.6 -> 1.8 cm, orientation 1.55 -> 0.77 deg); percentile
 # calibration, 128 images or float first / last layers gave 1.7-1.8 cm on top of it,
-# within the noise (docs/engine.md#int8).
+# within the noise (docs/engine.md#int8). static_8bit: the full 8 bits, exact only
+# where the CPU multiplies u8 x s8 without saturating (VNNI, see `int8_products_exact`).
 INT8_RECIPES = {
     "static": "qdq per-channel s8 reduce_range, u8 activations, minmax, 32 map images",
+    "static_8bit": "qdq per-channel s8, u8 activations, minmax, 32 map images",
     "dynamic": "dynamic s8 weights",
 }
 FLOAT_KEY = "relocfw.float_graph_sha256"  # the float graph an int8 one was made from
@@ -81,8 +87,9 @@ class EngineOptions:
     Args:
         threads: intra-op threads; None: the cores this process may use
             (`available_cores`).
-        int8: "none", "dynamic" (weights) or "static" (weights and activations,
-            calibrated on map images).
+        int8: "none", "dynamic" (weights), "static" (weights and activations,
+            calibrated on map images; 7-bit weights) or "static_8bit" (the same with
+            8-bit weights; CPUs with VNNI only).
         spinning: let idle onnxruntime threads spin for work. Off by default: between
             passes the pipeline runs torch and BLAS code on the same cores, which
             spinning threads slow down (benchmarks/engine_cost.py measures both).
@@ -126,6 +133,30 @@ def cgroup_cpu_quota(path: Path = Path("/sys/fs/cgroup/cpu.max")) -> int | None:
         return None
 
 
+VNNI_FLAGS = ("avx512_vnni", "avx_vnni", "amx_int8")
+
+
+def int8_products_exact(cpuinfo: Path = Path("/proc/cpuinfo")) -> str | None:
+    """None when onnxruntime's u8 x s8 products cannot saturate on this CPU with 8-bit
+    weights, else why they can. x86 without VNNI multiplies pairs into 16 bits
+    (vpmaddubsw), which 255 x 127 x 2 overflows; onnxruntime's documentation advises
+    7-bit weights (reduce_range) there. Other CPUs (arm64) and x86 whose flags cannot
+    be read are let through."""
+    if platform.machine().lower() not in ("x86_64", "amd64", "i686", "x86"):
+        return None
+    try:
+        lines = [line for line in cpuinfo.read_text().splitlines() if line.startswith("flags")]
+    except OSError:
+        return None
+    flags = set(lines[0].split(":", 1)[1].split()) if lines else set()
+    if flags & set(VNNI_FLAGS) or not flags:
+        return None
+    return (
+        "this CPU has no VNNI (AVX-512 VNNI / AVX-VNNI): its u8 x s8 products saturate "
+        "with 8-bit weights; use onnx.int8=static (7-bit weights)"
+    )
+
+
 def graph_path(owner: Path, kind: GraphKind, int8: str = "none") -> Path:
     """Where the graph of `kind` of checkpoint / model file `owner` is cached."""
     suffix = "" if int8 == "none" else f".int8-{int8}"
@@ -148,13 +179,13 @@ def onnx_engine(
         backbone: the trained torch backbone (or an OnnxBackbone: its source is used).
         owner: the checkpoint or model file the weights come from; graphs are written
             beside it as OWNER-<kind>.onnx.
-        calibration: map images (H x W x 3 uint8) for int8="static".
+        calibration: map images (H x W x 3 uint8) for a static int8 mode.
         say: where notes go (a rebuilt graph and why).
 
     Raises:
         EngineUnavailableError: onnxruntime or onnx is missing, a graph does not match
             torch, or a needed graph cannot be written nor made in memory.
-        ConfigError: int8="static" without calibration images and no cached graph.
+        ConfigError: a static int8 mode without calibration images and no cached graph.
     """
     options = options or EngineOptions()
     try:
@@ -164,6 +195,8 @@ def onnx_engine(
         raise EngineUnavailableError(
             f'engine=onnx needs {error.name!r} (pip install "relocfw[onnx]")'
         ) from error
+    if options.int8 == "static_8bit" and (why := int8_products_exact()) is not None:
+        raise EngineUnavailableError(why)
     source = trained_network(backbone)
     network = dropout_free_copy(source)
     fingerprint = weights_fingerprint(source)
@@ -311,11 +344,11 @@ def int8_graph(
     session, _, stale = cached(path, open_session, why_not)
     if session is not None:
         return session
-    if mode == "static" and not calibration:
+    if mode in STATIC_MODES and not calibration:
         raise ConfigError(
-            f"onnx.int8=static calibrates on map images, and none are at hand here to "
+            f"onnx.int8={mode} calibrates on map images, and none are at hand here to "
             f"make {path}{f' ({stale})' if stale else ''}: run task=relocalize with "
-            "onnx.int8=static (it keeps the graphs beside the model file it writes), "
+            f"onnx.int8={mode} (it keeps the graphs beside the model file it writes), "
             "or use onnx.int8=none"
         )
 
@@ -360,7 +393,7 @@ def quantised(
                 reader,
                 quant_format=quantization.QuantFormat.QDQ,
                 per_channel=True,
-                reduce_range=True,
+                reduce_range=mode == "static",
                 weight_type=quantization.QuantType.QInt8,
                 activation_type=quantization.QuantType.QUInt8,
                 calibrate_method=quantization.CalibrationMethod.MinMax,

@@ -221,7 +221,8 @@ def test_a_refusal_ends_a_real_process_with_one_line_and_status_2(tmp_path, cach
         ),
         (
             ["onnx.int8=int4"],
-            "onnx.int8=int4: Invalid value 'int4', expected one of [none, dynamic, static]",
+            "onnx.int8=int4: Invalid value 'int4', expected one of "
+            "[none, dynamic, static, static_8bit]",
         ),
     ],
     ids=["type", "choice", "engine", "old backend", "int8 choice"],

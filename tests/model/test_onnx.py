@@ -386,7 +386,8 @@ def test_cli_localize_backend_is_read_as_engine_and_needs_no_export(trained_mode
         ),
         (
             ["onnx.int8=int4"],
-            "onnx.int8=int4: Invalid value 'int4', expected one of [none, dynamic, static]",
+            "onnx.int8=int4: Invalid value 'int4', expected one of "
+            "[none, dynamic, static, static_8bit]",
         ),
         (
             ["engine=torch", "onnx.int8=dynamic"],

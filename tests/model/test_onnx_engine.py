@@ -31,10 +31,12 @@ from relocfw.model import onnx_engine as engine_module
 from relocfw.model.model_file import load_model, save_model
 from relocfw.model.onnx_backbone import OnnxBackbone, trained_network
 from relocfw.model.onnx_engine import (
+    INT8_RECIPES,
     EngineOptions,
     EngineUnavailableError,
     cgroup_cpu_quota,
     graph_path,
+    int8_products_exact,
     onnx_engine,
 )
 from relocfw.model.onnx_export import WEIGHTS_KEY, weights_fingerprint
@@ -434,7 +436,13 @@ def test_wanted_engine(engine, int8, device, wanted):
         ),
         ("torch", "static", 1, "cpu", "onnx.int8=static quantises the onnxruntime graphs"),
         ("torch", "dynamic", 1, "cpu", "onnx.int8=dynamic quantises the onnxruntime graphs"),
-        ("auto", "int4", 1, "cpu", "onnx.int8 must be one of none, dynamic, static, got 'int4'"),
+        (
+            "auto",
+            "int4",
+            1,
+            "cpu",
+            "onnx.int8 must be one of none, dynamic, static, static_8bit, got 'int4'",
+        ),
         ("torch", "none", 0, "cpu", "onnx.threads must be >= 1"),
         ("auto", "static", 1, "cuda", r"runs on torch here \(device=cuda\)"),
     ],
@@ -505,6 +513,48 @@ def test_int8_static_calibrates_on_map_images_once(built, images, tmp_path):
     answer = Relocalizer(again, ExhaustiveIndex(), CentreCrop())
     answer.fit(images.map)
     assert np.all(np.isfinite(answer.localize(images.queries[0]).pose.position))
+
+
+def test_int8_static_8bit_has_its_own_graphs_and_recipe(built, images, tmp_path, monkeypatch):
+    """8-bit weights: quantised without reduce_range, cached beside the 7-bit ones
+    (switching between them rebuilds nothing), answering differently from them."""
+    monkeypatch.setattr(engine_module, "int8_products_exact", lambda: None)
+    net = built("head")
+    owner = cached_copy(net, tmp_path)
+    seven = onnx_engine(net.backbone, owner, EngineOptions(threads=1, int8="static"), images.map)
+    options = EngineOptions(threads=1, int8="static_8bit")
+    eight = onnx_engine(net.backbone, owner, options, images.map, say=pytest.fail)
+    assert eight.int8 == "static_8bit"
+    path = graph_path(owner, KINDS["full"], "static_8bit")
+    assert path.name == "net.pt-full.int8-static_8bit.onnx"
+    props = {p.key: p.value for p in onnx.load(str(path)).metadata_props}
+    assert props["relocfw.int8_recipe"] == INT8_RECIPES["static_8bit"]
+    assert "reduce_range" not in props["relocfw.int8_recipe"]
+    onnx_engine(net.backbone, owner, EngineOptions(threads=1, int8="static"), say=pytest.fail)
+    batch = torch.rand(2, 3, net.backbone.input_size, net.backbone.input_size)
+    assert not torch.equal(seven(batch).positions, eight(batch).positions)
+
+
+@pytest.mark.parametrize(
+    ("flags", "refused"),
+    [
+        ("fpu sse avx2 fma", True),
+        ("fpu avx2 avx512f avx512_vnni", False),
+        ("fpu avx2 avx_vnni", False),
+    ],
+)
+def test_8bit_weights_are_refused_where_products_saturate(tmp_path, monkeypatch, flags, refused):
+    monkeypatch.setattr(engine_module.platform, "machine", lambda: "x86_64")
+    cpuinfo = tmp_path / "cpuinfo"
+    cpuinfo.write_text(f"processor\t: 0\nflags\t\t: {flags}\n")
+    why = int8_products_exact(cpuinfo)
+    assert (why is not None) == refused
+    if refused:
+        assert "onnx.int8=static" in why
+        monkeypatch.setattr(engine_module, "int8_products_exact", lambda: why)
+        options = EngineOptions(threads=1, int8="static_8bit")
+        with pytest.raises(EngineUnavailableError, match="no VNNI"):
+            onnx_engine(PoseNet(32, width=0.25), tmp_path / "net.pt", options)
 
 
 def test_a_static_graph_is_remade_when_its_float_graph_changes(built, images, tmp_path):
