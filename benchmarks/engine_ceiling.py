@@ -1,20 +1,23 @@
 """How close each inference engine runs the paper's network to the CPU's arithmetic peak.
 
 Issue 23 asks for the paper's method (the GA, about 22 plain network passes per query)
-at least 2x faster than torch. A query is 97% network passes (a cProfile of the
-onnxruntime GA), so the question is how many multiply-adds per second an engine gets
-out of the CPU. This script measures, on the same machine in one round robin:
+at least 2x faster than torch. This script measures, on the same machine:
 
-- the CPU's peak: a large square matrix product (torch, every thread), the best a
-  library gets from these cores in float32 (and in bfloat16, where the CPU has it);
-- GoogLeNet PoseNet at the paper's 224 px on a batch of `--batch` crops (a GA
-  generation is 5-6 new crops) on each engine: torch float32 in channels-last (what
-  relocfw's torch path runs), onnxruntime float32 (relocfw's default engine), the same
-  with the batch split over two one-thread sessions, OpenVINO float32 (if installed),
-  torch bfloat16 autocast, and onnxruntime int8 static (relocfw's recipe);
-- per engine: ms per batch, multiply-adds per second, its share of the float32 peak,
-  and its speed-up over torch; and what float32 throughput a 2x speed-up over torch
-  would need, as a share of the peak.
+- how much of a plain GA query on onnxruntime is the network: the time inside
+  onnxruntime's `run` over the whole query (--ga-queries rendered 640 x 480 views).
+  When that is nearly all, the question is how many multiply-adds per second an
+  engine gets out of the CPU;
+- the CPU's practical peak: the best of torch's and numpy's square matrix products
+  in float32 (and torch's in bfloat16, where the CPU has it), before and after the
+  engines run;
+- GoogLeNet PoseNet at 224 px on a batch of --batch crops (a GA generation is 1-10
+  new crops) on each engine, in one round robin: torch float32 in channels-last (what
+  relocfw's torch path runs), onnxruntime float32 (relocfw's default engine), the
+  same with the batch split over two one-thread sessions, OpenVINO float32 (if
+  installed), torch bfloat16 autocast, onnxruntime int8 static (onnx.int8=static)
+  and, where the CPU has VNNI, with 8-bit weights (onnx.int8=static_8bit);
+- per engine: ms per batch, multiply-adds per second, the share of the float32 peak
+  and the speed-up over torch; and what a 2x speed-up over torch would need.
 
 Weights are freshly initialised (time does not depend on them).
 
@@ -35,10 +38,10 @@ from pathlib import Path
 import numpy as np
 import torch
 from common import device_name, render_views, write_json  # benchmarks/, the script's folder
-from engine_cost import network
+from engine_cost import method_pipeline, network
 
 from relocfw.core.multiply_adds import multiply_adds
-from relocfw.model.onnx_engine import EngineOptions, onnx_engine
+from relocfw.model.onnx_engine import EngineOptions, int8_products_exact, onnx_engine
 
 
 def cpu_flags() -> list[str]:
@@ -85,9 +88,10 @@ def onnx_session(path: Path, threads: int):  # noqa: ANN201 - an onnxruntime ses
     return onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
-def engines(batch: torch.Tensor, folder: Path, calibration: list) -> dict[str, Callable]:
-    """One call per engine, each running the same network on `batch`."""
-    net = network("paper")
+def engines(
+    net: torch.nn.Module, batch: torch.Tensor, folder: Path, calibration: list
+) -> dict[str, Callable]:
+    """One call per engine, each running `net` on `batch`."""
     channels_last = batch.contiguous(memory_format=torch.channels_last)
     cores = torch.get_num_threads()
     found: dict[str, Callable] = {"torch float32": lambda: net(channels_last)}
@@ -129,7 +133,53 @@ def engines(batch: torch.Tensor, folder: Path, calibration: list) -> dict[str, C
         print("openvino is not installed: its row is left out")
     int8 = onnx_engine(net, folder / "net.pt", EngineOptions(int8="static"), calibration)
     found["onnxruntime int8 static"] = lambda: int8(batch)
+    if int8_products_exact() is None:  # VNNI: 8-bit weights multiply exactly
+        options = EngineOptions(int8="static_8bit")
+        int8_8bit = onnx_engine(net, folder / "net.pt", options, calibration)
+        found["onnxruntime int8 static, 8-bit weights"] = lambda: int8_8bit(batch)
     return found
+
+
+class TimedSession:
+    """An onnxruntime session that adds the time of each `run` to `spent`."""
+
+    def __init__(self, session, spent: list[float]) -> None:  # noqa: ANN001
+        self.session, self.spent = session, spent
+
+    def run(self, *args, **kwargs):  # noqa: ANN002, ANN003, ANN201
+        started = time.perf_counter()
+        try:
+            return self.session.run(*args, **kwargs)
+        finally:
+            self.spent.append(time.perf_counter() - started)
+
+
+def network_share_of_ga(args: argparse.Namespace, folder: Path) -> dict:
+    """How much of a plain GA query on onnxruntime is the network's passes: the time
+    inside onnxruntime's `run` over the whole `localize`, at the paper's geometry."""
+    shape = argparse.Namespace(
+        input_size=args.input_size, width=args.width, batch_size=16, device="cpu"
+    )
+    maps, _ = render_views(20, 0)
+    queries, _ = render_views(args.ga_queries + 1, -1)
+    relocalizer = method_pipeline("paper", "ga plain", maps, shape)
+    engine = onnx_engine(relocalizer.backbone, folder / "ga.pt", EngineOptions())
+    spent: list[float] = []
+    engine.sessions = {kind: TimedSession(s, spent) for kind, s in engine.sessions.items()}
+    relocalizer = relocalizer.replace(backbone=engine)
+    relocalizer.localize(queries[0])  # warm-up
+    spent.clear()
+    started = time.perf_counter()
+    for query in queries[1:]:
+        relocalizer.localize(query)
+    total = time.perf_counter() - started
+    return {
+        "queries": args.ga_queries,
+        "ms_per_query": 1000 * total / args.ga_queries,
+        "network_ms_per_query": 1000 * sum(spent) / args.ga_queries,
+        "network_share": sum(spent) / total,
+        "passes_per_query": len(spent) / args.ga_queries,
+    }
 
 
 def main() -> None:
@@ -137,19 +187,24 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=6, help="crops per pass")
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--matmul-size", type=int, default=3072)
+    parser.add_argument("--ga-queries", type=int, default=8, help="for the network's share")
+    parser.add_argument("--input-size", type=int, default=224, help="smaller for tests")
+    parser.add_argument("--width", type=float, default=1.0, help="GoogLeNet's width (tests)")
     parser.add_argument("--out", type=Path, default=Path("benchmarks/results/engine_ceiling.json"))
     args = parser.parse_args()
     started = time.perf_counter()
     generator = torch.Generator().manual_seed(0)
-    batch = torch.randn(args.batch, 3, 224, 224, generator=generator)
+    size = args.input_size
+    batch = torch.rand(args.batch, 3, size, size, generator=generator)
     peak = {"float32": matmul_peak(torch.float32, args.matmul_size, 5)}
     if "avx512_bf16" in cpu_flags() or "amx_bf16" in cpu_flags():
         peak["bfloat16"] = matmul_peak(torch.bfloat16, args.matmul_size, 5)
-    counted = network("paper")
+    net = network("paper", size=size, width=args.width)
     with torch.inference_mode():
-        work = multiply_adds(counted, lambda: counted(batch))
+        work = multiply_adds(net, lambda: net(batch))
     with tempfile.TemporaryDirectory(prefix="relocfw-ceiling-") as folder:
-        calls = engines(batch, Path(folder), render_views(20, 0)[0])
+        share = network_share_of_ga(args, Path(folder))
+        calls = engines(net, batch, Path(folder), render_views(20, 0, 160, 120)[0])
         times: dict[str, list[float]] = {name: [] for name in calls}
         with torch.inference_mode():
             for call in calls.values():
@@ -183,9 +238,10 @@ def main() -> None:
     report = {
         "batch": args.batch,
         "repeats": args.repeats,
-        "network": "GoogLeNet PoseNet, 224 px",
+        "network": f"GoogLeNet PoseNet, {size} px, width {args.width}",
         "multiply_adds_per_batch": work,
         "peak_giga_multiply_adds_per_s": {k: v / 1e9 for k, v in peak.items()},
+        "plain_ga_on_onnxruntime": share,
         "two_x_torch_needs_giga_multiply_adds_per_s": needed / 1e9,
         "two_x_torch_needs_share_of_float32_peak": needed / peak["float32"],
         "rows": rows,
@@ -197,11 +253,16 @@ def main() -> None:
         "load_average_1min": os.getloadavg()[0],
         "seconds": time.perf_counter() - started,
     }
+    print(
+        f"plain GA on onnxruntime: {share['ms_per_query']:.1f} ms/query, of which the "
+        f"network {share['network_ms_per_query']:.1f} ms ({100 * share['network_share']:.1f}%), "
+        f"{share['passes_per_query']:.1f} passes"
+    )
     print(f"CPU flags: {' '.join(cpu_flags())}; torch threads {torch.get_num_threads()}")
     for kind, value in peak.items():
         size = args.matmul_size
         print(f"peak {kind} (matrix product {size}): {value / 1e9:.1f} G multiply-adds/s")
-    print(f"GoogLeNet 224 px, batch {args.batch}: {work / 1e9:.2f} G multiply-adds")
+    print(f"{report['network']}, batch {args.batch}: {work / 1e9:.2f} G multiply-adds")
     print("| engine | ms per batch | G multiply-adds/s | share of float32 peak | x torch |")
     print("|---|---|---|---|---|")
     for r in rows:

@@ -14,8 +14,9 @@ Geometries (--geometry): `paper` (GoogLeNet PoseNet, 224 px) and `real_cpu`
 the paper's GA and the exhaustive sweep scored plainly, the GA with shared scoring,
 and Bayesian PoseNet's kendall variant with 40 Monte Carlo samples of the centre crop.
 
-Engines on a CPU: torch, onnx (float32) and onnx-int8 (static, calibrated on the map
-views). With --device cuda: torch, torch-amp (float16 autocast) and torch-compile.
+Engines on a CPU: torch, onnx (float32), onnx-int8 (onnx.int8=static: 7-bit weights,
+calibrated on the map views) and, where the CPU has VNNI, onnx-int8-8bit
+(onnx.int8=static_8bit). With --device cuda: torch, torch-amp (float16 autocast) and torch-compile.
 --threads-study also times centre and plain GA at the paper geometry under every
 combination of torch threads, onnxruntime intra-op threads and thread spinning.
 
@@ -42,7 +43,7 @@ from relocfw import Relocalizer
 from relocfw.core.interfaces import Backbone
 from relocfw.core.query_options import QueryOptions
 from relocfw.core.values import PoseOutput
-from relocfw.model.onnx_engine import EngineOptions, onnx_engine
+from relocfw.model.onnx_engine import EngineOptions, int8_products_exact, onnx_engine
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
@@ -51,7 +52,7 @@ from relocfw.plugins.sweep_crop import SweepCrop
 
 CROP_SCALE = 1.142857  # PoseNet's 256 / 224, what every preset trains with
 METHODS = ("centre", "ga plain", "sweep plain", "ga shared", "mc kendall x40")
-CPU_ENGINES = ("torch", "onnx", "onnx-int8")
+CPU_ENGINES = ("torch", "onnx", "onnx-int8", "onnx-int8-8bit")
 GPU_ENGINES = ("torch", "torch-amp", "torch-compile")
 
 
@@ -129,8 +130,9 @@ def on_engine(
         return relocalizer
     if engine == "onnx":
         return relocalizer.replace(backbone=onnx_engine(backbone, owner, EngineOptions(**options)))
-    if engine == "onnx-int8":
-        settings = EngineOptions(int8="static", **options)
+    if engine in ("onnx-int8", "onnx-int8-8bit"):
+        mode = "static" if engine == "onnx-int8" else "static_8bit"
+        settings = EngineOptions(int8=mode, **options)
         return relocalizer.replace(backbone=onnx_engine(backbone, owner, settings, calibration))
     if engine == "torch-amp":
         return relocalizer.replace(backbone=Autocast(backbone))
@@ -242,6 +244,8 @@ def table(rows: list[dict], title: str, reference: str = "torch") -> str:
 
 def geometry_run(geometry: str, args: argparse.Namespace, folder: Path) -> list[dict]:
     engines = GPU_ENGINES if args.device.startswith("cuda") else CPU_ENGINES
+    if int8_products_exact() is not None:  # no VNNI: 8-bit weights are refused
+        engines = tuple(e for e in engines if e != "onnx-int8-8bit")
     engines = tuple(e for e in engines if e in args.engines) or engines
     maps, _ = render_views(args.map_images, 0, *args.view_size)
     queries, _ = render_views(args.queries + args.warmup, -1, *args.view_size)

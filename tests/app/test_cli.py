@@ -462,3 +462,23 @@ def test_help_lists_the_options_with_their_package(tmp_path):
 def test_console_script_is_installed():
     script = Path(sys.executable).with_name("relocfw")
     assert script.is_file(), "pip install -e . should install the relocfw command"
+
+
+@pytest.mark.parametrize(
+    "methods",
+    sorted(p.stem for p in (Path(__file__).parents[2] / "conf" / "methods").glob("*.yaml")),
+)
+def test_every_shipped_methods_row_composes(methods):
+    """A typo in a shipped methods=NAME row (an unknown key, a value the schema
+    refuses) would otherwise surface only after the rows before it trained."""
+    from hydra import compose, initialize_config_module
+
+    from relocfw.app.tasks.compare import method_rows
+
+    with initialize_config_module(config_module="relocfw.conf", version_base="1.3"):
+        cfg = compose("config", overrides=[f"methods={methods}"])
+        rows = method_rows(cfg)
+        assert rows, methods
+        for name, overrides in rows.items():
+            row = compose("config", overrides=[f"methods={methods}", *overrides])
+            assert row.task is not None, name
