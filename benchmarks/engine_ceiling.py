@@ -27,12 +27,14 @@ Weights are freshly initialised (time does not depend on them).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib.metadata
 import os
 import platform
 import tempfile
-import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -40,20 +42,22 @@ import torch
 from common import device_name, render_views, write_json  # benchmarks/, the script's folder
 from engine_cost import method_pipeline, network
 
-from relocfw.core.multiply_adds import multiply_adds
-from relocfw.model.onnx_engine import EngineOptions, int8_products_exact, onnx_engine
+from relocfw.core.multiply_adds import layer_multiply_adds, multiply_adds
+from relocfw.model.cpu_flags import cpu_flags, int8_saturation_reason
+from relocfw.model.onnx_engine import EngineOptions, onnx_engine
+
+WANTED_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_bf16")
 
 
-def cpu_flags() -> list[str]:
-    """The CPU's vector extensions that matter here (Linux only)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return []
-    lines = [line for line in text.splitlines() if line.startswith("flags")]
-    flags = lines[0].split(":", 1)[1].split() if lines else []
-    wanted = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_bf16")
-    return [flag for flag in wanted if flag in flags]
+def vector_flags() -> list[str]:
+    """The CPU's vector extensions that matter here (Linux; [] elsewhere)."""
+    flags = cpu_flags() or set()
+    return [flag for flag in WANTED_FLAGS if flag in flags]
+
+
+def has_bfloat16() -> bool:
+    """Native bfloat16 arithmetic; elsewhere torch emulates it, slower than float32."""
+    return bool({"avx512_bf16", "amx_bf16"} & set(vector_flags()))
 
 
 def matmul_peak(dtype: torch.dtype, size: int, repeats: int) -> float:
@@ -91,34 +95,40 @@ def onnx_session(path: Path, threads: int):  # noqa: ANN201 - an onnxruntime ses
 def engines(
     net: torch.nn.Module, batch: torch.Tensor, folder: Path, calibration: list
 ) -> dict[str, Callable]:
-    """One call per engine, each running `net` on `batch`."""
-    channels_last = batch.contiguous(memory_format=torch.channels_last)
+    """One call per engine, each running `net` on `batch`. Every onnxruntime row
+    calls its session directly with the same numpy batch and thread count, so rows
+    differ only in the graph and how it is run."""
     cores = torch.get_num_threads()
+    # relocfw's torch path (relocfw.core.scorer) runs weights and inputs channels-last.
+    net.to(memory_format=torch.channels_last)
+    channels_last = batch.contiguous(memory_format=torch.channels_last)
     found: dict[str, Callable] = {"torch float32": lambda: net(channels_last)}
+    if has_bfloat16():
 
-    def bfloat16() -> object:
-        with torch.autocast("cpu", dtype=torch.bfloat16):
-            return net(channels_last)
+        def bfloat16() -> object:
+            with torch.autocast("cpu", dtype=torch.bfloat16):
+                return net(channels_last)
 
-    found["torch bfloat16 autocast"] = bfloat16
-    onnx_engine(net, folder / "net.pt", EngineOptions())(batch)  # exports the float graph
-    float_graph = next(folder.glob("net.pt-full.onnx"))
-    whole = onnx_session(float_graph, cores)
-    name = whole.get_inputs()[0].name
+        found["torch bfloat16 autocast"] = bfloat16
     images = batch.numpy()
+    engine = onnx_engine(net, folder / "net.pt", EngineOptions(threads=cores))
+    float_graph = next(folder.glob("net.pt-full.onnx"))
+    whole = engine.sessions["full"]
+    name = whole.get_inputs()[0].name
     found["onnxruntime float32"] = lambda: whole.run(None, {name: images})
-    halves = [onnx_session(float_graph, 1) for _ in range(2)]
-    split = len(images) // 2
+    if len(images) >= 2:
+        halves = [onnx_session(float_graph, 1) for _ in range(2)]
+        parts = np.array_split(images, 2)
+        pool = ThreadPoolExecutor(max_workers=1)
 
-    def split_batch() -> None:
-        # Two one-thread sessions on half the batch each: parallel over images
-        # instead of inside each convolution (onnxruntime releases the GIL).
-        other = threading.Thread(target=halves[1].run, args=(None, {name: images[split:]}))
-        other.start()
-        halves[0].run(None, {name: images[:split]})
-        other.join()
+        def split_batch() -> None:
+            # Two one-thread sessions on half the batch each: parallel over images
+            # instead of inside each convolution (onnxruntime releases the GIL).
+            other = pool.submit(halves[1].run, None, {name: parts[1]})
+            halves[0].run(None, {name: parts[0]})
+            other.result()  # raises what the other thread raised
 
-    found["onnxruntime float32, 2 x 1 thread"] = split_batch
+        found["onnxruntime float32, 2 x 1 thread"] = split_batch
     try:
         import openvino
 
@@ -131,13 +141,50 @@ def engines(
         found["openvino float32"] = lambda: request.infer({0: images})
     except ImportError:
         print("openvino is not installed: its row is left out")
-    int8 = onnx_engine(net, folder / "net.pt", EngineOptions(int8="static"), calibration)
-    found["onnxruntime int8 static"] = lambda: int8(batch)
-    if int8_products_exact() is None:  # VNNI: 8-bit weights multiply exactly
-        options = EngineOptions(int8="static_8bit")
-        int8_8bit = onnx_engine(net, folder / "net.pt", options, calibration)
-        found["onnxruntime int8 static, 8-bit weights"] = lambda: int8_8bit(batch)
+    except Exception as error:  # openvino's own types: a graph it cannot compile
+        print(f"openvino cannot run the graph ({type(error).__name__}: {error}): row left out")
+    modes = {"static": "onnxruntime int8 static"}
+    if int8_saturation_reason() is None:  # VNNI: 8-bit weights multiply exactly
+        modes["static_8bit"] = "onnxruntime int8 static, 8-bit weights"
+    for mode, label in modes.items():
+        options = EngineOptions(threads=cores, int8=mode)
+        session = onnx_engine(net, folder / "net.pt", options, calibration).sessions["full"]
+        found[label] = lambda session=session: session.run(None, {name: images})
     return found
+
+
+def library_versions() -> dict[str, str]:
+    """The engines' versions, for the report (absent: not installed)."""
+    versions = {}
+    for package in ("onnxruntime", "openvino", "numpy"):
+        with contextlib.suppress(importlib.metadata.PackageNotFoundError):
+            versions[package] = importlib.metadata.version(package)
+    return versions
+
+
+def work_by_kernel(net: torch.nn.Module, batch: torch.Tensor) -> dict[str, float]:
+    """Each convolution kernel size's share of the multiply-adds ("linear" for fully
+    connected layers): what a fast-convolution algorithm (Winograd for 3 x 3) could
+    cut is bounded by its kernels' share."""
+    work: dict[str, int] = {}
+
+    def count(layer: torch.nn.Module, inputs: tuple, output: torch.Tensor) -> None:
+        size = getattr(layer, "kernel_size", None)
+        key = "linear" if size is None else "x".join(map(str, size))
+        if getattr(layer, "stride", (1,))[0] != 1:
+            key += " strided"
+        work[key] = work.get(key, 0) + layer_multiply_adds(layer, output, inputs[0])
+
+    layers = [m for m in net.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear))]
+    hooks = [layer.register_forward_hook(count) for layer in layers]
+    try:
+        with torch.inference_mode():
+            net(batch)
+    finally:
+        for hook in hooks:
+            hook.remove()
+    total = sum(work.values())
+    return {key: value / total for key, value in sorted(work.items(), key=lambda kv: -kv[1])}
 
 
 class TimedSession:
@@ -170,15 +217,16 @@ def network_share_of_ga(args: argparse.Namespace, folder: Path) -> dict:
     relocalizer.localize(queries[0])  # warm-up
     spent.clear()
     started = time.perf_counter()
-    for query in queries[1:]:
-        relocalizer.localize(query)
+    answers = [relocalizer.localize(query) for query in queries[1:]]
     total = time.perf_counter() - started
     return {
         "queries": args.ga_queries,
         "ms_per_query": 1000 * total / args.ga_queries,
         "network_ms_per_query": 1000 * sum(spent) / args.ga_queries,
         "network_share": sum(spent) / total,
-        "passes_per_query": len(spent) / args.ga_queries,
+        # onnxruntime runs (one per GA generation) and the crops they scored
+        "runs_per_query": len(spent) / args.ga_queries,
+        "crops_per_query": float(np.mean([a.network_passes for a in answers])),
     }
 
 
@@ -197,11 +245,12 @@ def main() -> None:
     size = args.input_size
     batch = torch.rand(args.batch, 3, size, size, generator=generator)
     peak = {"float32": matmul_peak(torch.float32, args.matmul_size, 5)}
-    if "avx512_bf16" in cpu_flags() or "amx_bf16" in cpu_flags():
+    if has_bfloat16():
         peak["bfloat16"] = matmul_peak(torch.bfloat16, args.matmul_size, 5)
     net = network("paper", size=size, width=args.width)
     with torch.inference_mode():
         work = multiply_adds(net, lambda: net(batch))
+    kernels = work_by_kernel(net, batch)
     with tempfile.TemporaryDirectory(prefix="relocfw-ceiling-") as folder:
         share = network_share_of_ga(args, Path(folder))
         calls = engines(net, batch, Path(folder), render_views(20, 0, 160, 120)[0])
@@ -240,6 +289,7 @@ def main() -> None:
         "repeats": args.repeats,
         "network": f"GoogLeNet PoseNet, {size} px, width {args.width}",
         "multiply_adds_per_batch": work,
+        "share_of_multiply_adds_by_kernel": kernels,
         "peak_giga_multiply_adds_per_s": {k: v / 1e9 for k, v in peak.items()},
         "plain_ga_on_onnxruntime": share,
         "two_x_torch_needs_giga_multiply_adds_per_s": needed / 1e9,
@@ -247,22 +297,25 @@ def main() -> None:
         "rows": rows,
         "device": device_name("cpu"),
         "machine": platform.processor() or platform.machine(),
-        "cpu_flags": cpu_flags(),
+        "cpu_flags": vector_flags(),
         "cores": os.cpu_count(),
         "torch_version": torch.__version__,
+        "library_versions": library_versions(),
         "load_average_1min": os.getloadavg()[0],
         "seconds": time.perf_counter() - started,
     }
     print(
         f"plain GA on onnxruntime: {share['ms_per_query']:.1f} ms/query, of which the "
         f"network {share['network_ms_per_query']:.1f} ms ({100 * share['network_share']:.1f}%), "
-        f"{share['passes_per_query']:.1f} passes"
+        f"{share['runs_per_query']:.1f} runs of {share['crops_per_query']:.1f} crops in all"
     )
-    print(f"CPU flags: {' '.join(cpu_flags())}; torch threads {torch.get_num_threads()}")
+    print(f"CPU flags: {' '.join(vector_flags())}; torch threads {torch.get_num_threads()}")
     for kind, value in peak.items():
         size = args.matmul_size
         print(f"peak {kind} (matrix product {size}): {value / 1e9:.1f} G multiply-adds/s")
     print(f"{report['network']}, batch {args.batch}: {work / 1e9:.2f} G multiply-adds")
+    shares = ", ".join(f"{kernel} {100 * share:.1f}%" for kernel, share in kernels.items())
+    print(f"multiply-adds by kernel: {shares}")
     print("| engine | ms per batch | G multiply-adds/s | share of float32 peak | x torch |")
     print("|---|---|---|---|---|")
     for r in rows:

@@ -43,7 +43,8 @@ from relocfw import Relocalizer
 from relocfw.core.interfaces import Backbone
 from relocfw.core.query_options import QueryOptions
 from relocfw.core.values import PoseOutput
-from relocfw.model.onnx_engine import EngineOptions, int8_products_exact, onnx_engine
+from relocfw.model.cpu_flags import int8_saturation_reason
+from relocfw.model.onnx_engine import EngineOptions, onnx_engine
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
@@ -244,7 +245,7 @@ def table(rows: list[dict], title: str, reference: str = "torch") -> str:
 
 def geometry_run(geometry: str, args: argparse.Namespace, folder: Path) -> list[dict]:
     engines = GPU_ENGINES if args.device.startswith("cuda") else CPU_ENGINES
-    if int8_products_exact() is not None:  # no VNNI: 8-bit weights are refused
+    if int8_saturation_reason() is not None:  # no VNNI: 8-bit weights are refused
         engines = tuple(e for e in engines if e != "onnx-int8-8bit")
     engines = tuple(e for e in engines if e in args.engines) or engines
     maps, _ = render_views(args.map_images, 0, *args.view_size)

@@ -21,6 +21,7 @@ from relocfw.app.config_schema import name_of
 from relocfw.core.atomic_files import atomic_write
 from relocfw.core.errors import ConfigError
 from relocfw.core.pipeline import Relocalizer
+from relocfw.model import cpu_flags
 from relocfw.model.onnx_backbone import OnnxBackbone
 from relocfw.model.onnx_engine import (
     STATIC_MODES,
@@ -61,6 +62,11 @@ def wanted_engine(cfg: DictConfig, device: torch.device) -> str:
             f"onnx.int8={options.int8} quantises the onnxruntime graphs, but the network "
             f"runs on torch here ({why}): use engine=onnx on a CPU, or drop onnx.int8"
         )
+    if engine == "onnx" and options.int8 == "static_8bit":
+        # Refused here, before any training, not only when the graphs are made.
+        why = cpu_flags.int8_saturation_reason()
+        if why is not None:
+            raise ConfigError(f"onnx.int8=static_8bit cannot run here: {why}")
     return engine
 
 
@@ -76,7 +82,7 @@ def on_engine(
     Args:
         owner: the checkpoint or model file the weights come from: the engine's graphs
             are cached beside it.
-        calibration: map images, for onnx.int8=static.
+        calibration: map images, for onnx.int8=static / static_8bit.
 
     With engine=auto on a CPU the graphs are exported or reused; when that is not
     possible the run goes on with torch and one line says why. engine=onnx, or any

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import platform
 import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -36,6 +35,7 @@ from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import Strip, to_network_input
 from relocfw.core.interfaces import Backbone
 from relocfw.core.version import VERSION
+from relocfw.model import cpu_flags
 from relocfw.model.onnx_backbone import OnnxBackbone, trained_network
 from relocfw.model.onnx_export import (
     INPUT_NAME,
@@ -66,7 +66,7 @@ RECIPE_KEY = "relocfw.int8_recipe"
 # training frames (median 3.6 -> 1.8 cm, orientation 1.55 -> 0.77 deg); percentile
 # calibration, 128 images or float first / last layers gave 1.7-1.8 cm on top of it,
 # within the noise (docs/engine.md#int8). static_8bit: the full 8 bits, exact only
-# where the CPU multiplies u8 x s8 without saturating (VNNI, see `int8_products_exact`).
+# where the CPU multiplies u8 x s8 without saturating (VNNI, see relocfw.model.cpu_flags).
 INT8_RECIPES = {
     "static": "qdq per-channel s8 reduce_range, u8 activations, minmax, 32 map images",
     "static_8bit": "qdq per-channel s8, u8 activations, minmax, 32 map images",
@@ -133,30 +133,6 @@ def cgroup_cpu_quota(path: Path = Path("/sys/fs/cgroup/cpu.max")) -> int | None:
         return None
 
 
-VNNI_FLAGS = ("avx512_vnni", "avx_vnni", "amx_int8")
-
-
-def int8_products_exact(cpuinfo: Path = Path("/proc/cpuinfo")) -> str | None:
-    """None when onnxruntime's u8 x s8 products cannot saturate on this CPU with 8-bit
-    weights, else why they can. x86 without VNNI multiplies pairs into 16 bits
-    (vpmaddubsw), which 255 x 127 x 2 overflows; onnxruntime's documentation advises
-    7-bit weights (reduce_range) there. Other CPUs (arm64) and x86 whose flags cannot
-    be read are let through."""
-    if platform.machine().lower() not in ("x86_64", "amd64", "i686", "x86"):
-        return None
-    try:
-        lines = [line for line in cpuinfo.read_text().splitlines() if line.startswith("flags")]
-    except OSError:
-        return None
-    flags = set(lines[0].split(":", 1)[1].split()) if lines else set()
-    if flags & set(VNNI_FLAGS) or not flags:
-        return None
-    return (
-        "this CPU has no VNNI (AVX-512 VNNI / AVX-VNNI): its u8 x s8 products saturate "
-        "with 8-bit weights; use onnx.int8=static (7-bit weights)"
-    )
-
-
 def graph_path(owner: Path, kind: GraphKind, int8: str = "none") -> Path:
     """Where the graph of `kind` of checkpoint / model file `owner` is cached."""
     suffix = "" if int8 == "none" else f".int8-{int8}"
@@ -195,7 +171,7 @@ def onnx_engine(
         raise EngineUnavailableError(
             f'engine=onnx needs {error.name!r} (pip install "relocfw[onnx]")'
         ) from error
-    if options.int8 == "static_8bit" and (why := int8_products_exact()) is not None:
+    if options.int8 == "static_8bit" and (why := cpu_flags.int8_saturation_reason()) is not None:
         raise EngineUnavailableError(why)
     source = trained_network(backbone)
     network = dropout_free_copy(source)

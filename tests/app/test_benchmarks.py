@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from relocfw.model.onnx_engine import int8_products_exact
+from relocfw.model.cpu_flags import int8_saturation_reason
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
@@ -179,8 +179,10 @@ def test_engine_ceiling(tmp_path):
     engines = {r["engine"] for r in report["rows"]}
     assert {"torch float32", "onnxruntime float32", "onnxruntime int8 static"} <= engines
     assert report["multiply_adds_per_batch"] > 0
+    assert sum(report["share_of_multiply_adds_by_kernel"].values()) == pytest.approx(1)
     assert 0 < report["plain_ga_on_onnxruntime"]["network_share"] <= 1
-    assert report["plain_ga_on_onnxruntime"]["passes_per_query"] >= 1
+    assert report["plain_ga_on_onnxruntime"]["runs_per_query"] >= 1
+    assert report["plain_ga_on_onnxruntime"]["crops_per_query"] >= 1
     assert report["peak_giga_multiply_adds_per_s"]["float32"] > 0
     assert all(r["ms_per_batch"] > 0 for r in report["rows"])
 
@@ -215,7 +217,7 @@ def test_engine_cost(tmp_path):
     assert {r["method"] for r in report["threads"]["threads"]} == {"centre", "ga plain"}
     rows = report["geometries"]["paper"]
     engines = ["torch", "onnx", "onnx-int8"]
-    if int8_products_exact() is None:  # 8-bit weights run only where the CPU has VNNI
+    if int8_saturation_reason() is None:  # 8-bit weights run only where the CPU has VNNI
         engines.append("onnx-int8-8bit")
     assert {(r["method"], r["engine"]) for r in rows} == {(m, e) for m in methods for e in engines}
     assert all(r["ms_per_query"] > 0 for r in rows)

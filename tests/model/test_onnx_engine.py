@@ -27,16 +27,17 @@ from relocfw.app.engines import (
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.query_options import QueryOptions
+from relocfw.model import cpu_flags
 from relocfw.model import onnx_engine as engine_module
 from relocfw.model.model_file import load_model, save_model
 from relocfw.model.onnx_backbone import OnnxBackbone, trained_network
 from relocfw.model.onnx_engine import (
     INT8_RECIPES,
+    STATIC_MODES,
     EngineOptions,
     EngineUnavailableError,
     cgroup_cpu_quota,
     graph_path,
-    int8_products_exact,
     onnx_engine,
 )
 from relocfw.model.onnx_export import WEIGHTS_KEY, weights_fingerprint
@@ -518,7 +519,7 @@ def test_int8_static_calibrates_on_map_images_once(built, images, tmp_path):
 def test_int8_static_8bit_has_its_own_graphs_and_recipe(built, images, tmp_path, monkeypatch):
     """8-bit weights: quantised without reduce_range, cached beside the 7-bit ones
     (switching between them rebuilds nothing), answering differently from them."""
-    monkeypatch.setattr(engine_module, "int8_products_exact", lambda: None)
+    monkeypatch.setattr(cpu_flags, "int8_saturation_reason", lambda: None)
     net = built("head")
     owner = cached_copy(net, tmp_path)
     seven = onnx_engine(net.backbone, owner, EngineOptions(threads=1, int8="static"), images.map)
@@ -535,26 +536,42 @@ def test_int8_static_8bit_has_its_own_graphs_and_recipe(built, images, tmp_path,
     assert not torch.equal(seven(batch).positions, eight(batch).positions)
 
 
-@pytest.mark.parametrize(
-    ("flags", "refused"),
-    [
-        ("fpu sse avx2 fma", True),
-        ("fpu avx2 avx512f avx512_vnni", False),
-        ("fpu avx2 avx_vnni", False),
-    ],
-)
-def test_8bit_weights_are_refused_where_products_saturate(tmp_path, monkeypatch, flags, refused):
-    monkeypatch.setattr(engine_module.platform, "machine", lambda: "x86_64")
+def cpuinfo_with(tmp_path: Path, flags: str) -> Path:
     cpuinfo = tmp_path / "cpuinfo"
     cpuinfo.write_text(f"processor\t: 0\nflags\t\t: {flags}\n")
-    why = int8_products_exact(cpuinfo)
-    assert (why is not None) == refused
-    if refused:
-        assert "onnx.int8=static" in why
-        monkeypatch.setattr(engine_module, "int8_products_exact", lambda: why)
-        options = EngineOptions(threads=1, int8="static_8bit")
-        with pytest.raises(EngineUnavailableError, match="no VNNI"):
-            onnx_engine(PoseNet(32, width=0.25), tmp_path / "net.pt", options)
+    return cpuinfo
+
+
+@pytest.mark.parametrize(
+    ("machine", "flags", "refused"),
+    [
+        ("x86_64", "fpu sse avx2 fma", "no VNNI"),
+        ("x86_64", "fpu avx2 avx512f avx512_vnni", None),
+        ("x86_64", "fpu avx2 avx_vnni", None),
+        ("x86_64", "fpu avx512f amx_int8", None),
+        ("x86_64", None, "cannot read this CPU's flags"),
+        ("AMD64", "fpu sse avx2", "no VNNI"),
+        ("arm64", None, None),
+        ("aarch64", "fp asimd", None),
+    ],
+)
+def test_8bit_weights_are_refused_where_products_may_saturate(
+    tmp_path, monkeypatch, machine, flags, refused
+):
+    monkeypatch.setattr(cpu_flags.platform, "machine", lambda: machine)
+    cpuinfo = cpuinfo_with(tmp_path, flags) if flags else tmp_path / "missing"
+    why = cpu_flags.int8_saturation_reason(cpuinfo)
+    if refused is None:
+        assert why is None
+        return
+    assert refused in why and "use onnx.int8=static" in why
+    monkeypatch.setattr(cpu_flags, "int8_saturation_reason", lambda: why)
+    options = EngineOptions(threads=1, int8="static_8bit")
+    with pytest.raises(EngineUnavailableError, match=refused):
+        onnx_engine(PoseNet(32, width=0.25), tmp_path / "net.pt", options)
+    # The CLI refuses it before any work (task=compare checks every row up front).
+    with pytest.raises(ConfigError, match=f"onnx.int8=static_8bit cannot run here: .*{refused}"):
+        wanted_engine(engine_config("auto", "static_8bit"), torch.device("cpu"))
 
 
 def test_a_static_graph_is_remade_when_its_float_graph_changes(built, images, tmp_path):
@@ -576,13 +593,19 @@ def test_a_static_graph_is_remade_when_its_float_graph_changes(built, images, tm
     assert static.read_bytes() != before
 
 
-def test_relocalize_keeps_static_graphs_beside_the_model_file(built, images, tmp_path):
+@pytest.mark.parametrize("mode", STATIC_MODES)
+def test_relocalize_keeps_static_graphs_beside_the_model_file(
+    built, images, tmp_path, monkeypatch, mode
+):
     """task=localize has no map images to calibrate on: the model file's folder must
-    hold the static graphs task=relocalize made."""
+    hold the static graphs task=relocalize made (of the mode it ran, and no other)."""
+    monkeypatch.setattr(cpu_flags, "int8_saturation_reason", lambda: None)
     net = built("head")
     (tmp_path / "cache").mkdir()
     checkpoint = cached_copy(net, tmp_path / "cache")
-    options = EngineOptions(threads=1, int8="static")
+    other = next(m for m in STATIC_MODES if m != mode)
+    onnx_engine(net.backbone, checkpoint, EngineOptions(threads=1, int8=other), images.map)
+    options = EngineOptions(threads=1, int8=mode)
     engine = onnx_engine(net.backbone, checkpoint, options, images.map, say=pytest.fail)
     relocalizer = Relocalizer(engine, ExhaustiveIndex(), CentreCrop())
     model = tmp_path / "run" / "model.relocfw"
@@ -590,12 +613,12 @@ def test_relocalize_keeps_static_graphs_beside_the_model_file(built, images, tmp
     keep_graphs_beside(relocalizer, checkpoint, model)
     beside = sorted(p.name for p in model.parent.iterdir())
     assert beside == sorted(
-        f"model.relocfw-{kind}{mode}.onnx"
+        f"model.relocfw-{kind}{suffix}.onnx"
         for kind in ("full", "maps")
-        for mode in ("", ".int8-static")
+        for suffix in ("", f".int8-{mode}")
     )
     reused = onnx_engine(net.backbone, model, options, say=pytest.fail)  # no calibration
-    assert reused.int8 == "static"
+    assert reused.int8 == mode
     # A float engine keeps nothing beside the model file: its graphs can be remade.
     keep_graphs_beside(relocalizer.replace(backbone=net.engine), checkpoint, tmp_path / "m2")
     assert not list(tmp_path.glob("m2*"))
