@@ -5,7 +5,9 @@ engine=onnx runs the dropout-free trunk as a graph and the layers each sample re
 dropout and the regressor) in torch (relocfw.model.onnx_graphs). The alternative the
 issue names: export those layers with the dropout masks as inputs. This times both on
 the same maps of one window, 40 samples, alternating, medians of --repeats runs; the
-graph's time includes drawing its masks with numpy.
+graph's time includes drawing its masks, with numpy, or with torch's bernoulli_ as the
+torch path's dropout draws them (the only way to keep its samples); and the time of
+drawing torch's masks alone.
 
     .venv/bin/python benchmarks/mc_sampled_part.py --repeats 15
 """
@@ -94,7 +96,32 @@ def main() -> None:
             {"maps": repeated.numpy(), "on_maps": on_maps, "on_descriptor": on_descriptor * keep},
         )
 
-    ways = {"torch": in_torch, "onnxruntime graph, masks as inputs": as_graph}
+    generator = torch.Generator().manual_seed(0)
+
+    def torch_masks() -> tuple[torch.Tensor, torch.Tensor]:
+        # As nn.functional.dropout draws them: Bernoulli(1 - rate) from a seeded torch
+        # stream, the only way the samples stay those of the torch path.
+        on_maps = torch.empty(repeated.shape).bernoulli_(1 - rate, generator=generator)
+        on_descriptor = torch.empty(samples, network.feature_dim)
+        return on_maps, on_descriptor.bernoulli_(1 - rate, generator=generator)
+
+    def as_graph_torch_masks() -> None:
+        on_maps, on_descriptor = torch_masks()
+        session.run(
+            None,
+            {
+                "maps": repeated.numpy(),
+                "on_maps": (on_maps * keep).numpy(),
+                "on_descriptor": (on_descriptor * keep).numpy(),
+            },
+        )
+
+    ways = {
+        "torch": in_torch,
+        "onnxruntime graph, masks as inputs": as_graph,
+        "onnxruntime graph, masks drawn by torch": as_graph_torch_masks,
+        "drawing torch's masks only": torch_masks,
+    }
     for way in ways.values():
         way()
         way()
@@ -106,7 +133,7 @@ def main() -> None:
             times[name].append(time.perf_counter() - started)
     rows = [{"way": name, "ms": 1000 * float(np.median(t))} for name, t in times.items()]
     for row in rows:
-        print(f"{row['way']:<36} {row['ms']:7.2f} ms for {samples} samples of one window")
+        print(f"{row['way']:<42} {row['ms']:7.2f} ms for {samples} samples of one window")
     report = {
         "input_size": args.input_size,
         "samples": samples,

@@ -278,7 +278,12 @@ def test_mc_sampled_part(tmp_path):
         "--input-size",
         "64",
     )
-    assert [r["way"] for r in report["rows"]] == ["torch", "onnxruntime graph, masks as inputs"]
+    assert [r["way"] for r in report["rows"]] == [
+        "torch",
+        "onnxruntime graph, masks as inputs",
+        "onnxruntime graph, masks drawn by torch",
+        "drawing torch's masks only",
+    ]
     assert all(r["ms"] > 0 for r in report["rows"])
 
 
