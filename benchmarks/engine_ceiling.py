@@ -14,8 +14,10 @@ at least 2x faster than torch. This script measures, on the same machine:
   new crops) on each engine, in one round robin: torch float32 in channels-last (what
   relocfw's torch path runs), onnxruntime float32 (relocfw's default engine), the
   same with the batch split over two one-thread sessions, OpenVINO float32 (if
-  installed), torch bfloat16 autocast, onnxruntime int8 static (onnx.int8=static)
-  and, where the CPU has VNNI, with 8-bit weights (onnx.int8=static_8bit);
+  installed), torch bfloat16 autocast, torch with NNPACK's fast algorithms (Winograd
+  or FFT, its choice) for the 3 x 3 convolutions (with its largest difference from
+  torch's descriptors), onnxruntime int8 static (onnx.int8=static) and, where the CPU
+  has VNNI, with 8-bit weights (onnx.int8=static_8bit);
 - per engine: ms per batch, multiply-adds per second, the share of the float32 peak
   and the speed-up over torch; and what a 2x speed-up over torch would need.
 
@@ -28,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import importlib.metadata
 import os
 import platform
@@ -82,6 +85,33 @@ def matmul_peak(dtype: torch.dtype, size: int, repeats: int) -> float:
     return size**3 / best
 
 
+class NnpackConvolution(torch.nn.Module):
+    """A stride-1 convolution run by NNPACK (bundled with torch), which picks a fast
+    algorithm (Winograd or FFT) itself: the one fast-convolution library at hand."""
+
+    def __init__(self, conv: torch.nn.Conv2d) -> None:
+        super().__init__()
+        self.weight = conv.weight.detach().contiguous()
+        bias = conv.bias if conv.bias is not None else torch.zeros(conv.out_channels)
+        self.bias = bias.detach().contiguous()
+        self.padding = list(conv.padding)
+
+    def forward(self, maps: torch.Tensor) -> torch.Tensor:
+        return torch._nnpack_spatial_convolution(
+            maps.contiguous(), self.weight, self.bias, self.padding, [1, 1]
+        )
+
+
+def with_nnpack_3x3(net: torch.nn.Module) -> torch.nn.Module:
+    """`net` (changed in place) with every stride-1 3 x 3 convolution run by NNPACK."""
+    for parent in list(net.modules()):
+        for name, child in parent.named_children():
+            square = isinstance(child, torch.nn.Conv2d) and child.kernel_size == (3, 3)
+            if square and child.stride == (1, 1) and child.groups == 1:
+                setattr(parent, name, NnpackConvolution(child))
+    return net
+
+
 def onnx_session(path: Path, threads: int):  # noqa: ANN201 - an onnxruntime session
     import onnxruntime
 
@@ -93,12 +123,14 @@ def onnx_session(path: Path, threads: int):  # noqa: ANN201 - an onnxruntime ses
 
 
 def engines(
-    net: torch.nn.Module, batch: torch.Tensor, folder: Path, calibration: list
+    net: torch.nn.Module, batch: torch.Tensor, folder: Path, calibration: list, facts: dict
 ) -> dict[str, Callable]:
     """One call per engine, each running `net` on `batch`. Every onnxruntime row
     calls its session directly with the same numpy batch and thread count, so rows
-    differ only in the graph and how it is run."""
+    differ only in the graph and how it is run. What is learnt on the way goes into
+    `facts`."""
     cores = torch.get_num_threads()
+    nnpack = with_nnpack_3x3(copy.deepcopy(net)) if torch.backends.nnpack.is_available() else None
     # relocfw's torch path (relocfw.core.scorer) runs weights and inputs channels-last.
     net.to(memory_format=torch.channels_last)
     channels_last = batch.contiguous(memory_format=torch.channels_last)
@@ -110,6 +142,12 @@ def engines(
                 return net(channels_last)
 
         found["torch bfloat16 autocast"] = bfloat16
+    if nnpack is not None:
+        found["torch float32, NNPACK for the 3 x 3 convolutions"] = lambda: nnpack(batch)
+        with torch.inference_mode():
+            reference, fast = net(channels_last).features, nnpack(batch).features
+        difference = (fast - reference).abs().max() / reference.abs().max()
+        facts["nnpack_largest_relative_descriptor_difference"] = float(difference)
     images = batch.numpy()
     engine = onnx_engine(net, folder / "net.pt", EngineOptions(threads=cores))
     float_graph = next(folder.glob("net.pt-full.onnx"))
@@ -253,7 +291,8 @@ def main() -> None:
     kernels = work_by_kernel(net, batch)
     with tempfile.TemporaryDirectory(prefix="relocfw-ceiling-") as folder:
         share = network_share_of_ga(args, Path(folder))
-        calls = engines(net, batch, Path(folder), render_views(20, 0, 160, 120)[0])
+        facts: dict = {}
+        calls = engines(net, batch, Path(folder), render_views(20, 0, 160, 120)[0], facts)
         times: dict[str, list[float]] = {name: [] for name in calls}
         with torch.inference_mode():
             for call in calls.values():
@@ -292,6 +331,7 @@ def main() -> None:
         "share_of_multiply_adds_by_kernel": kernels,
         "peak_giga_multiply_adds_per_s": {k: v / 1e9 for k, v in peak.items()},
         "plain_ga_on_onnxruntime": share,
+        **facts,
         "two_x_torch_needs_giga_multiply_adds_per_s": needed / 1e9,
         "two_x_torch_needs_share_of_float32_peak": needed / peak["float32"],
         "rows": rows,
