@@ -22,6 +22,7 @@ def cpu_flags(cpuinfo: Path = Path("/proc/cpuinfo")) -> set[str] | None:
 
 
 def is_x86() -> bool:
+    """Whether this is an x86 CPU (where VNNI decides; other CPUs have no such flag)."""
     return platform.machine().lower() in ("x86_64", "amd64", "i386", "i686", "x86")
 
 
@@ -34,9 +35,9 @@ def int8_saturation_reason(cpuinfo: Path = Path("/proc/cpuinfo")) -> str | None:
     flags = cpu_flags(cpuinfo)
     if flags is None:
         return (
-            f"relocfw cannot read this CPU's flags ({cpuinfo} is missing) to tell whether "
-            "it has VNNI, without which 8-bit weights saturate; use onnx.int8=static "
-            "(7-bit weights)"
+            f"relocfw cannot read this CPU's flags (no flags line in {cpuinfo}) to tell "
+            "whether it has VNNI, without which 8-bit weights saturate; use "
+            "onnx.int8=static (7-bit weights)"
         )
     if flags & set(VNNI_FLAGS):
         return None
