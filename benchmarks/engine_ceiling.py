@@ -45,9 +45,10 @@ import torch
 from common import device_name, render_views, write_json  # benchmarks/, the script's folder
 from engine_cost import method_pipeline, network
 
-from relocfw.core.multiply_adds import layer_multiply_adds, multiply_adds
+from relocfw.core.multiply_adds import multiply_adds_by_layer
 from relocfw.model.cpu_flags import cpu_flags, int8_saturation_reason
-from relocfw.model.onnx_engine import EngineOptions, onnx_engine
+from relocfw.model.onnx_engine import EngineOptions, graph_path, onnx_engine
+from relocfw.model.onnx_graphs import KINDS
 
 WANTED_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_bf16")
 
@@ -112,16 +113,6 @@ def with_nnpack_3x3(net: torch.nn.Module) -> torch.nn.Module:
     return net
 
 
-def onnx_session(path: Path, threads: int):  # noqa: ANN201 - an onnxruntime session
-    import onnxruntime
-
-    options = onnxruntime.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-
-
 def engines(
     net: torch.nn.Module, batch: torch.Tensor, folder: Path, calibration: list, facts: dict
 ) -> dict[str, Callable]:
@@ -149,13 +140,16 @@ def engines(
         difference = (fast - reference).abs().max() / reference.abs().max()
         facts["nnpack_largest_relative_descriptor_difference"] = float(difference)
     images = batch.numpy()
-    engine = onnx_engine(net, folder / "net.pt", EngineOptions(threads=cores))
-    float_graph = next(folder.glob("net.pt-full.onnx"))
-    whole = engine.sessions["full"]
+    owner = folder / "net.pt"
+
+    def full_session(options: EngineOptions, calibration: list | None = None):  # noqa: ANN202
+        return onnx_engine(net, owner, options, calibration).sessions["full"]
+
+    whole = full_session(EngineOptions(threads=cores))
     name = whole.get_inputs()[0].name
     found["onnxruntime float32"] = lambda: whole.run(None, {name: images})
     if len(images) >= 2:
-        halves = [onnx_session(float_graph, 1) for _ in range(2)]
+        halves = [full_session(EngineOptions(threads=1)) for _ in range(2)]
         parts = np.array_split(images, 2)
         pool = ThreadPoolExecutor(max_workers=1)
 
@@ -171,7 +165,7 @@ def engines(
         import openvino
 
         compiled = openvino.Core().compile_model(
-            str(float_graph),
+            str(graph_path(owner, KINDS["full"])),
             "CPU",
             {"INFERENCE_NUM_THREADS": cores, "INFERENCE_PRECISION_HINT": "f32"},
         )
@@ -185,8 +179,7 @@ def engines(
     if int8_saturation_reason() is None:  # VNNI: 8-bit weights multiply exactly
         modes["static_8bit"] = "onnxruntime int8 static, 8-bit weights"
     for mode, label in modes.items():
-        options = EngineOptions(threads=cores, int8=mode)
-        session = onnx_engine(net, folder / "net.pt", options, calibration).sessions["full"]
+        session = full_session(EngineOptions(threads=cores, int8=mode), calibration)
         found[label] = lambda session=session: session.run(None, {name: images})
     return found
 
@@ -200,27 +193,17 @@ def library_versions() -> dict[str, str]:
     return versions
 
 
-def work_by_kernel(net: torch.nn.Module, batch: torch.Tensor) -> dict[str, float]:
+def work_by_kernel(by_layer: dict[torch.nn.Module, int]) -> dict[str, float]:
     """Each convolution kernel size's share of the multiply-adds ("linear" for fully
     connected layers): what a fast-convolution algorithm (Winograd for 3 x 3) could
     cut is bounded by its kernels' share."""
     work: dict[str, int] = {}
-
-    def count(layer: torch.nn.Module, inputs: tuple, output: torch.Tensor) -> None:
+    for layer, count in by_layer.items():
         size = getattr(layer, "kernel_size", None)
         key = "linear" if size is None else "x".join(map(str, size))
         if getattr(layer, "stride", (1,))[0] != 1:
             key += " strided"
-        work[key] = work.get(key, 0) + layer_multiply_adds(layer, output, inputs[0])
-
-    layers = [m for m in net.modules() if isinstance(m, (torch.nn.Conv2d, torch.nn.Linear))]
-    hooks = [layer.register_forward_hook(count) for layer in layers]
-    try:
-        with torch.inference_mode():
-            net(batch)
-    finally:
-        for hook in hooks:
-            hook.remove()
+        work[key] = work.get(key, 0) + count
     total = sum(work.values())
     return {key: value / total for key, value in sorted(work.items(), key=lambda kv: -kv[1])}
 
@@ -287,8 +270,9 @@ def main() -> None:
         peak["bfloat16"] = matmul_peak(torch.bfloat16, args.matmul_size, 5)
     net = network("paper", size=size, width=args.width)
     with torch.inference_mode():
-        work = multiply_adds(net, lambda: net(batch))
-    kernels = work_by_kernel(net, batch)
+        by_layer = multiply_adds_by_layer(net, lambda: net(batch))
+    work = sum(by_layer.values())
+    kernels = work_by_kernel(by_layer)
     with tempfile.TemporaryDirectory(prefix="relocfw-ceiling-") as folder:
         share = network_share_of_ga(args, Path(folder))
         facts: dict = {}

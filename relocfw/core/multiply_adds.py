@@ -34,19 +34,21 @@ def layer_multiply_adds(
     return 0
 
 
-def multiply_adds(network: nn.Module, run: Callable[[], Any]) -> int:
-    """Multiply-adds of `network`'s convolutions and linear layers while `run()` runs.
+def multiply_adds_by_layer(network: nn.Module, run: Callable[[], Any]) -> dict[nn.Module, int]:
+    """Multiply-adds of each of `network`'s convolutions and linear layers while
+    `run()` runs (layers that did no counted work are left out).
 
     Counted by forward hooks, so layers run twice (e.g. once per Monte Carlo sample)
     count twice, and layers that do not run count nothing.
     """
-    total = 0
+    counts: dict[nn.Module, int] = {}
 
     def count(layer: nn.Module, inputs: Any, output: Any) -> None:
-        nonlocal total
         if isinstance(output, torch.Tensor):
             source = inputs[0] if inputs and isinstance(inputs[0], torch.Tensor) else None
-            total += layer_multiply_adds(layer, output, source)
+            work = layer_multiply_adds(layer, output, source)
+            if work:
+                counts[layer] = counts.get(layer, 0) + work
 
     hooks = [layer.register_forward_hook(count) for layer in network.modules()]
     try:
@@ -54,4 +56,10 @@ def multiply_adds(network: nn.Module, run: Callable[[], Any]) -> int:
     finally:
         for hook in hooks:
             hook.remove()
-    return total
+    return counts
+
+
+def multiply_adds(network: nn.Module, run: Callable[[], Any]) -> int:
+    """Multiply-adds of `network`'s convolutions and linear layers while `run()` runs
+    (`multiply_adds_by_layer`, summed)."""
+    return sum(multiply_adds_by_layer(network, run).values())
