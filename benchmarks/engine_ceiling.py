@@ -17,7 +17,9 @@ at least 2x faster than torch. This script measures, on the same machine:
   installed), torch bfloat16 autocast, torch with NNPACK's fast algorithms (Winograd
   or FFT, its choice) for the 3 x 3 convolutions (with its largest difference from
   torch's descriptors), onnxruntime int8 static (onnx.int8=static) and, where the CPU
-  has VNNI, with 8-bit weights (onnx.int8=static_8bit);
+  has VNNI, with 8-bit weights (onnx.int8=static_8bit); ncnn float32 (engine=ncnn,
+  Winograd kernels for the 3 x 3 convolutions; with its largest descriptor difference
+  from torch), where relocfw[ncnn] is installed;
 - per engine: ms per batch, multiply-adds per second, the share of the float32 peak
   and the speed-up over torch; and what a 2x speed-up over torch would need.
 
@@ -32,6 +34,7 @@ import argparse
 import contextlib
 import copy
 import importlib.metadata
+import importlib.util
 import os
 import platform
 import tempfile
@@ -47,6 +50,7 @@ from engine_cost import method_pipeline, network
 
 from relocfw.core.multiply_adds import multiply_adds_by_layer
 from relocfw.model.cpu_flags import cpu_flags, int8_saturation_reason
+from relocfw.model.ncnn_engine import ncnn_engine
 from relocfw.model.onnx_engine import EngineOptions, graph_path, onnx_engine
 from relocfw.model.onnx_graphs import KINDS
 
@@ -175,6 +179,16 @@ def engines(
         print("openvino is not installed: its row is left out")
     except Exception as error:  # openvino's own types: a graph it cannot compile
         print(f"openvino cannot run the graph ({type(error).__name__}: {error}): row left out")
+    if importlib.util.find_spec("ncnn") and importlib.util.find_spec("pnnx"):
+        on_ncnn = ncnn_engine(net, owner, EngineOptions(threads=cores)).sessions["full"]
+        found["ncnn float32 (Winograd)"] = lambda: on_ncnn.run(None, {name: images})
+        with torch.inference_mode():
+            reference = net(channels_last).features.numpy()
+        fast = on_ncnn.run(["features"], {name: images})[0]
+        difference = np.abs(fast - reference).max() / np.abs(reference).max()
+        facts["ncnn_largest_relative_descriptor_difference"] = float(difference)
+    else:
+        print('ncnn or pnnx is not installed ("relocfw[ncnn]"): its row is left out')
     modes = {"static": "onnxruntime int8 static"}
     if int8_saturation_reason() is None:  # VNNI: 8-bit weights multiply exactly
         modes["static_8bit"] = "onnxruntime int8 static, 8-bit weights"
@@ -187,7 +201,7 @@ def engines(
 def library_versions() -> dict[str, str]:
     """The engines' versions, for the report (absent: not installed)."""
     versions = {}
-    for package in ("onnxruntime", "openvino", "numpy"):
+    for package in ("onnxruntime", "openvino", "ncnn", "pnnx", "numpy"):
         with contextlib.suppress(importlib.metadata.PackageNotFoundError):
             versions[package] = importlib.metadata.version(package)
     return versions

@@ -14,9 +14,10 @@ Geometries (--geometry): `paper` (GoogLeNet PoseNet, 224 px) and `real_cpu`
 the paper's GA and the exhaustive sweep scored plainly, the GA with shared scoring,
 and Bayesian PoseNet's kendall variant with 40 Monte Carlo samples of the centre crop.
 
-Engines on a CPU: torch, onnx (float32), onnx-int8 (onnx.int8=static: 7-bit weights,
-calibrated on the map views) and, where the CPU has VNNI, onnx-int8-8bit
-(onnx.int8=static_8bit). With --device cuda: torch, torch-amp (float16 autocast) and torch-compile.
+Engines on a CPU: torch, onnx (float32), ncnn (float32, where relocfw[ncnn] is
+installed), onnx-int8 (onnx.int8=static: 7-bit weights, calibrated on the map views)
+and, where the CPU has VNNI, onnx-int8-8bit (onnx.int8=static_8bit). With --device
+cuda: torch, torch-amp (float16 autocast) and torch-compile.
 --threads-study also times centre and plain GA at the paper geometry under every
 combination of torch threads, onnxruntime intra-op threads and thread spinning.
 
@@ -27,6 +28,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.metadata
+import importlib.util
 import os
 import platform
 import tempfile
@@ -44,6 +47,7 @@ from relocfw.core.interfaces import Backbone
 from relocfw.core.query_options import QueryOptions
 from relocfw.core.values import PoseOutput
 from relocfw.model.cpu_flags import int8_saturation_reason
+from relocfw.model.ncnn_engine import ncnn_engine
 from relocfw.model.onnx_engine import EngineOptions, onnx_engine
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
@@ -53,7 +57,7 @@ from relocfw.plugins.sweep_crop import SweepCrop
 
 CROP_SCALE = 1.142857  # PoseNet's 256 / 224, what every preset trains with
 METHODS = ("centre", "ga plain", "sweep plain", "ga shared", "mc kendall x40")
-CPU_ENGINES = ("torch", "onnx", "onnx-int8", "onnx-int8-8bit")
+CPU_ENGINES = ("torch", "onnx", "ncnn", "onnx-int8", "onnx-int8-8bit")
 GPU_ENGINES = ("torch", "torch-amp", "torch-compile")
 
 
@@ -131,6 +135,8 @@ def on_engine(
         return relocalizer
     if engine == "onnx":
         return relocalizer.replace(backbone=onnx_engine(backbone, owner, EngineOptions(**options)))
+    if engine == "ncnn":
+        return relocalizer.replace(backbone=ncnn_engine(backbone, owner, EngineOptions(**options)))
     if engine in ("onnx-int8", "onnx-int8-8bit"):
         mode = "static" if engine == "onnx-int8" else "static_8bit"
         settings = EngineOptions(int8=mode, **options)
@@ -243,10 +249,17 @@ def table(rows: list[dict], title: str, reference: str = "torch") -> str:
     return "\n".join(lines)
 
 
+def has_ncnn() -> bool:
+    return all(importlib.util.find_spec(name) is not None for name in ("ncnn", "pnnx"))
+
+
 def geometry_run(geometry: str, args: argparse.Namespace, folder: Path) -> list[dict]:
     engines = GPU_ENGINES if args.device.startswith("cuda") else CPU_ENGINES
     if int8_saturation_reason() is not None:  # no VNNI: 8-bit weights are refused
         engines = tuple(e for e in engines if e != "onnx-int8-8bit")
+    if not has_ncnn():
+        print('ncnn or pnnx is not installed ("relocfw[ncnn]"): its rows are left out')
+        engines = tuple(e for e in engines if e != "ncnn")
     engines = tuple(e for e in engines if e in args.engines) or engines
     maps, _ = render_views(args.map_images, 0, *args.view_size)
     queries, _ = render_views(args.queries + args.warmup, -1, *args.view_size)
@@ -279,6 +292,9 @@ def threads_study(args: argparse.Namespace, folder: Path) -> dict[str, list[dict
             # torch keeps every core for the pipeline's small torch operations.
             swapped = on_engine(base, "onnx", folder, maps, {"threads": count})
             threads.append(Pair(method, f"onnx {count}t", swapped, cores))
+            if has_ncnn():
+                swapped = on_engine(base, "ncnn", folder, maps, {"threads": count})
+                threads.append(Pair(method, f"ncnn {count}t", swapped, cores))
         for spin in (False, True):
             swapped = on_engine(base, "onnx", folder, maps, {"spinning": spin})
             spinning.append(Pair(method, f"onnx {cores}t{' spin' if spin else ''}", swapped))
@@ -330,6 +346,9 @@ def main() -> None:
         report["onnxruntime_version"] = onnxruntime.__version__
     except ImportError:
         pass
+    if has_ncnn():
+        report["ncnn_version"] = importlib.metadata.version("ncnn")
+        report["pnnx_version"] = importlib.metadata.version("pnnx")
     timed: Callable[[], float] = time.perf_counter
     started = timed()
     with tempfile.TemporaryDirectory(prefix="relocfw-engine-") as folder:

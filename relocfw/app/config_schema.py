@@ -41,6 +41,7 @@ class Engine(Enum):
     auto = "auto"
     torch = "torch"
     onnx = "onnx"
+    ncnn = "ncnn"
 
 
 class Int8(Enum):

@@ -1,4 +1,5 @@
-"""engine=auto|torch|onnx: what runs a task's network passes (relocfw.model.onnx_engine).
+"""engine=auto|torch|onnx|ncnn: what runs a task's network passes
+(relocfw.model.onnx_engine, relocfw.model.ncnn_engine).
 
 Every task that localizes (relocalize, compare, diagnose, localize) puts its
 Relocalizer through `on_engine` before fitting the map, so the map and the queries
@@ -22,6 +23,7 @@ from relocfw.core.atomic_files import atomic_write
 from relocfw.core.errors import ConfigError
 from relocfw.core.pipeline import Relocalizer
 from relocfw.model import cpu_flags
+from relocfw.model.ncnn_engine import ncnn_engine
 from relocfw.model.onnx_backbone import OnnxBackbone
 from relocfw.model.onnx_engine import (
     STATIC_MODES,
@@ -31,6 +33,9 @@ from relocfw.model.onnx_engine import (
     onnx_engine,
 )
 from relocfw.model.onnx_graphs import KINDS
+
+# The engines that run on the CPU only, and the library each runs the network with.
+CPU_ENGINES = {"onnx": "onnxruntime", "ncnn": "ncnn"}
 
 
 def warn(line: str) -> None:
@@ -45,16 +50,21 @@ def engine_options(cfg: DictConfig) -> EngineOptions:
 
 
 def wanted_engine(cfg: DictConfig, device: torch.device) -> str:
-    """The engine this run uses, "torch" or "onnx"; ConfigError for onnx options that
-    cannot apply."""
+    """The engine this run uses, "torch", "onnx" or "ncnn"; ConfigError for engine
+    options that cannot apply."""
     engine = name_of(cfg.engine)
     options = engine_options(cfg)  # checked whatever the engine: a bad value is a typo
     if engine == "auto":
         engine = "onnx" if device.type == "cpu" else "torch"
-    if engine == "onnx" and device.type != "cpu":
+    if engine in CPU_ENGINES and device.type != "cpu":
         raise ConfigError(
-            f"engine=onnx runs the network with onnxruntime on the CPU, but device={device}: "
-            "drop device (or use engine=torch, or engine=auto: torch on a GPU)"
+            f"engine={engine} runs the network with {CPU_ENGINES[engine]} on the CPU, but "
+            f"device={device}: drop device (or use engine=torch, or engine=auto: torch on a GPU)"
+        )
+    if engine == "ncnn" and options.int8 != "none":
+        raise ConfigError(
+            f"onnx.int8={options.int8} quantises onnxruntime's graphs, but engine=ncnn runs "
+            "ncnn's float32 networks: use engine=onnx for int8, or drop onnx.int8"
         )
     if engine == "torch" and options.int8 != "none":
         why = "engine=torch" if name_of(cfg.engine) == "torch" else f"device={device}"
@@ -85,20 +95,24 @@ def on_engine(
         calibration: map images, for onnx.int8=static / static_8bit.
 
     With engine=auto on a CPU the graphs are exported or reused; when that is not
-    possible the run goes on with torch and one line says why. engine=onnx, or any
-    onnx.int8, was asked for by name: not getting it is a ConfigError, so a row
+    possible the run goes on with torch and one line says why. engine=onnx or ncnn,
+    or any onnx.int8, was asked for by name: not getting it is a ConfigError, so a row
     labelled int8 never reports torch's numbers. The returned relocalizer shares the
     map, search and refiner of `relocalizer`.
     """
-    if wanted_engine(cfg, device) == "torch":
+    engine = wanted_engine(cfg, device)
+    if engine == "torch":
         return relocalizer
     options = engine_options(cfg)
     try:
-        with quiet_quantisation():
-            backbone = onnx_engine(relocalizer.backbone, owner, options, calibration, say=warn)
+        if engine == "ncnn":
+            backbone = ncnn_engine(relocalizer.backbone, owner, options, say=warn)
+        else:
+            with quiet_quantisation():
+                backbone = onnx_engine(relocalizer.backbone, owner, options, calibration, say=warn)
     except EngineUnavailableError as error:
-        if name_of(cfg.engine) == "onnx" or options.int8 != "none":
-            asked = "engine=onnx" if options.int8 == "none" else f"onnx.int8={options.int8}"
+        if name_of(cfg.engine) != "auto" or options.int8 != "none":
+            asked = f"engine={engine}" if options.int8 == "none" else f"onnx.int8={options.int8}"
             message = f"{asked} cannot run: {error} (engine=auto falls back to torch)"
             raise ConfigError(message) from error
         warn(f"note: {error}; the network runs on torch (engine=torch silences this)")

@@ -177,17 +177,7 @@ def onnx_engine(
     network = dropout_free_copy(source)
     fingerprint = weights_fingerprint(source)
     threads = int(options.threads or available_cores())
-    session_options = onnxruntime.SessionOptions()
-    session_options.intra_op_num_threads = threads
-    session_options.inter_op_num_threads = 1
-    session_options.add_session_config_entry(
-        "session.intra_op.allow_spinning", "1" if options.spinning else "0"
-    )
-
-    def open_session(data: bytes | str) -> Any:
-        cpu = ["CPUExecutionProvider"]
-        return onnxruntime.InferenceSession(data, session_options, providers=cpu)
-
+    open_session = session_opener(threads, options.spinning)
     sessions = {}
     for kind in kinds_needed(source):
         session, data = float_graph(network, kind, owner, fingerprint, open_session, say)
@@ -207,6 +197,24 @@ def onnx_engine(
     precision = "float32" if options.int8 == "none" else f"int8 {options.int8}"
     description = f"onnxruntime {onnxruntime.__version__}, {precision}, {threads} threads"
     return OnnxBackbone(source, sessions, description, options.int8)
+
+
+def session_opener(threads: int, spinning: bool = False) -> Callable[[bytes | str], Any]:
+    """A function opening an onnxruntime CPU session of a graph (its bytes or path)."""
+    import onnxruntime
+
+    session_options = onnxruntime.SessionOptions()
+    session_options.intra_op_num_threads = threads
+    session_options.inter_op_num_threads = 1
+    session_options.add_session_config_entry(
+        "session.intra_op.allow_spinning", "1" if spinning else "0"
+    )
+
+    def open_session(data: bytes | str) -> Any:
+        cpu = ["CPUExecutionProvider"]
+        return onnxruntime.InferenceSession(data, session_options, providers=cpu)
+
+    return open_session
 
 
 def cached(

@@ -1,6 +1,7 @@
 """The benchmark scripts still run and write their JSON (tiny sizes; numbers not checked)."""
 
 import importlib
+import importlib.util
 import json
 import subprocess
 import sys
@@ -178,6 +179,9 @@ def test_engine_ceiling(tmp_path):
     )
     engines = {r["engine"] for r in report["rows"]}
     assert {"torch float32", "onnxruntime float32", "onnxruntime int8 static"} <= engines
+    if importlib.util.find_spec("ncnn") and importlib.util.find_spec("pnnx"):
+        assert "ncnn float32 (Winograd)" in engines
+        assert report["ncnn_largest_relative_descriptor_difference"] < 1e-4
     assert report["multiply_adds_per_batch"] > 0
     assert sum(report["share_of_multiply_adds_by_kernel"].values()) == pytest.approx(1)
     assert 0 < report["plain_ga_on_onnxruntime"]["network_share"] <= 1
@@ -219,10 +223,15 @@ def test_engine_cost(tmp_path):
     engines = ["torch", "onnx", "onnx-int8"]
     if int8_saturation_reason() is None:  # 8-bit weights run only where the CPU has VNNI
         engines.append("onnx-int8-8bit")
+    ncnn = all(importlib.util.find_spec(name) for name in ("ncnn", "pnnx"))
+    if ncnn:
+        engines.append("ncnn")
     assert {(r["method"], r["engine"]) for r in rows} == {(m, e) for m in methods for e in engines}
     assert all(r["ms_per_query"] > 0 for r in rows)
-    for row in rows:  # float32 onnxruntime answers as torch does; int8 only runs
-        if row["engine"] == "onnx":
+    threads = {r["engine"] for r in report["threads"]["threads"]}
+    assert ("ncnn 1t" in threads) == ncnn
+    for row in rows:  # float32 engines answer as torch does; int8 only runs
+        if row["engine"] in ("onnx", "ncnn"):
             assert row["same_crop_as_torch"] == 1.0
             assert row["max_position_difference_m"] < 1e-4
 

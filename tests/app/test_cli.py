@@ -213,11 +213,11 @@ def test_a_refusal_ends_a_real_process_with_one_line_and_status_2(tmp_path, cach
         (["query.scoring=fancy"], "query.scoring=fancy: Invalid value 'fancy', expected one of"),
         (
             ["task=localize", "engine=tf"],
-            "engine=tf: Invalid value 'tf', expected one of [auto, torch, onnx]",
+            "engine=tf: Invalid value 'tf', expected one of [auto, torch, onnx, ncnn]",
         ),
         (  # the spelling before the engine: read as engine=tf (one note), then refused
             ["task=localize", "localize.backend=tf"],
-            "engine=tf: Invalid value 'tf', expected one of [auto, torch, onnx]",
+            "engine=tf: Invalid value 'tf', expected one of [auto, torch, onnx, ncnn]",
         ),
         (
             ["onnx.int8=int4"],
@@ -487,4 +487,4 @@ def test_every_shipped_methods_row_composes(methods, monkeypatch):
         assert rows, methods
         for overrides in rows.values():
             row = compose("config", overrides=[f"methods={methods}", *overrides])
-            assert wanted_engine(row, torch.device("cpu")) in ("torch", "onnx")
+            assert wanted_engine(row, torch.device("cpu")) in ("torch", "onnx", "ncnn")

@@ -4,6 +4,7 @@ engine's own tests)."""
 
 import csv
 import importlib
+import importlib.util
 import re
 import sys
 from pathlib import Path
@@ -335,20 +336,24 @@ def test_cli_export_then_localize_on_either_engine(trained_model):
     assert f"ONNX network: {model}.onnx" in exported.stdout
     robots = Path(f"{model}.onnx").read_bytes()
     runs = {}
-    for engine in ("torch", "onnx"):
+    # engine=ncnn too where relocfw[ncnn] is installed (it is in relocfw[test]).
+    engines = ("torch", "onnx", "ncnn") if importlib.util.find_spec("ncnn") else ("torch", "onnx")
+    for engine in engines:
         runs[engine] = home / f"localize-{engine}"
         result = localize_run(trained_model, model, runs[engine], f"engine={engine}")
         assert result.returncode == 0, result.stderr
         assert "note:" not in result.stdout + result.stderr  # the engine ran, no fallback
     torch_poses = np.loadtxt(runs["torch"] / "poses.txt")
-    onnx_poses = np.loadtxt(runs["onnx"] / "poses.txt")
-    assert torch_poses.shape == onnx_poses.shape == (4, 8)
-    assert np.allclose(onnx_poses, torch_poses, atol=TOLERANCE)
-    crops = [
-        [(r["crop_x"], r["crop_y"], r["crop_size"]) for r in localization_rows(runs[engine])]
-        for engine in ("torch", "onnx")
-    ]
-    assert crops[0] == crops[1]
+    assert torch_poses.shape == (4, 8)
+    for engine in engines[1:]:
+        poses = np.loadtxt(runs[engine] / "poses.txt")
+        assert poses.shape == torch_poses.shape
+        assert np.allclose(poses, torch_poses, atol=TOLERANCE), engine
+        crops = [
+            [(r["crop_x"], r["crop_y"], r["crop_size"]) for r in localization_rows(runs[name])]
+            for name in ("torch", engine)
+        ]
+        assert crops[0] == crops[1], engine
     # The engine's graphs are cached beside the model file; the robot's export is not
     # what it runs, and stays as task=export wrote it.
     assert Path(f"{model}-full.onnx").is_file() and Path(f"{model}-maps.onnx").is_file()

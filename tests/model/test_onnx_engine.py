@@ -83,11 +83,15 @@ class Images:
     queries: list[np.ndarray]
 
 
-@pytest.fixture(scope="module")
-def images() -> Images:
+def seeded_images() -> Images:
     rng = np.random.default_rng(0)
     frames = [rng.integers(0, 256, (60, 80, 3), dtype=np.uint8) for _ in range(8)]
     return Images(frames[:6], frames[6:])
+
+
+@pytest.fixture(scope="module")
+def images() -> Images:
+    return seeded_images()
 
 
 @dataclass(frozen=True)
