@@ -267,6 +267,8 @@ class NcnnSession:
     def run(self, names: Sequence[str] | None, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         """The outputs `names` (None: all, as onnxruntime) of the images in `feeds`."""
         images = np.ascontiguousarray(feeds[INPUT_NAME], dtype=np.float32)
+        if len(images) == 0:  # no shapes to give an empty answer (the pipeline never asks)
+            raise ValueError("NcnnSession.run needs at least one image")
         answers: list[list[np.ndarray]] = [[] for _ in self.blobs]
         for image in images:
             with self.net.create_extractor() as extractor:
@@ -277,7 +279,5 @@ class NcnnSession:
                     if code != 0:
                         raise RuntimeError(f"ncnn could not compute {self.outputs[number]}")
                     answers[number].append(np.array(answer))
-        if len(images) == 0:
-            raise ValueError("NcnnSession.run needs at least one image")
         by_name = {name: np.stack(a) for name, a in zip(self.outputs, answers, strict=True)}
         return [by_name[name] for name in (self.outputs if names is None else names)]
