@@ -20,16 +20,17 @@ from __future__ import annotations
 
 import hashlib
 import json
+import signal
 import subprocess
+import sys
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
-
-import numpy as np
 
 from relocfw.core.atomic_files import atomic_write
 from relocfw.core.errors import DataError
 from relocfw.core.interfaces import Backbone
+from relocfw.model.ncnn_session import NcnnLoadError, NcnnSession
 from relocfw.model.onnx_backbone import OnnxBackbone, trained_network
 from relocfw.model.onnx_engine import (
     EngineOptions,
@@ -38,23 +39,13 @@ from relocfw.model.onnx_engine import (
     float_graph,
     session_opener,
 )
-from relocfw.model.onnx_export import INPUT_NAME, dropout_free_copy, weights_fingerprint
+from relocfw.model.onnx_export import dropout_free_copy, weights_fingerprint
 from relocfw.model.onnx_graphs import GraphKind, kinds_needed, largest_difference
 
 # Raised when what the files hold, or how they are made, changes meaning.
 NCNN_FORMAT = "1"
-# pnnx names the graph's input and outputs in0, out0, out1, ... in the ONNX order.
-NCNN_INPUT = "in0"
-# ncnn's reduced-precision storage and arithmetic, all off: the answers must be torch's.
-REDUCED_PRECISION = (
-    "use_fp16_packed",
-    "use_fp16_storage",
-    "use_fp16_arithmetic",
-    "use_bf16_packed",
-    "use_bf16_storage",
-    "use_int8_inference",
-)
 CONVERSION_SECONDS = 600
+PROBE = Path(__file__).with_name("ncnn_probe.py")
 
 
 def ncnn_files(owner: Path, kind: GraphKind) -> dict[str, Path]:
@@ -126,7 +117,7 @@ def ncnn_network(
     stale = why_not_cached(files, wanted)
     if stale is None:
         try:
-            session = NcnnSession(files["param"], files["bin"], kind.outputs, threads)
+            session = opened(files["param"], files["bin"], kind, threads)
             largest_difference(session, network, kind)
             return session
         except DataError as error:
@@ -135,8 +126,10 @@ def ncnn_network(
         stale = None  # nothing cached: a first conversion, no note
     with tempfile.TemporaryDirectory(prefix="relocfw-ncnn-") as folder:
         try:
-            param, weights = converted(onnx_data, kind, int(network.input_size), Path(folder))
-            session = NcnnSession(param, weights, kind.outputs, threads)
+            side = int(network.input_size)
+            param, weights = converted(onnx_data, kind, side, Path(folder))
+            survives_a_run(param, weights, kind, side)
+            session = opened(param, weights, kind, threads)
             largest_difference(session, network, kind)
         except DataError as error:
             if stale is not None:
@@ -156,6 +149,13 @@ def ncnn_network(
     return session
 
 
+def opened(param: Path, weights: Path, kind: GraphKind, threads: int) -> NcnnSession:
+    try:
+        return NcnnSession(param, weights, kind.outputs, threads)
+    except NcnnLoadError as error:
+        raise DataError(str(error)) from error
+
+
 def why_not_cached(files: dict[str, Path], onnx_sha256: str) -> str | None:
     """None when the cached files are whole and made from this ONNX graph; "" when
     there are none; else why they cannot serve."""
@@ -172,6 +172,8 @@ def why_not_cached(files: dict[str, Path], onnx_sha256: str) -> str | None:
         return "it was converted from another ONNX graph"
     if record.get("param_sha256") != param_sha or record.get("bin_sha256") != bin_sha:
         return "its files are not the ones converted"
+    if record.get("versions") != versions():  # probed with other code
+        return "it was converted and probed with other ncnn / pnnx versions"
     return None
 
 
@@ -212,6 +214,26 @@ def converted(onnx_data: bytes, kind: GraphKind, side: int, folder: Path) -> tup
     return param, weights
 
 
+def survives_a_run(param: Path, weights: Path, kind: GraphKind, side: int) -> None:
+    """DataError unless the converted network runs on every check size in a process
+    of its own (relocfw.model.ncnn_probe): a crash there is reported, not suffered."""
+    sizes = [f"{height},{width}" for height, width in kind.check_sizes(side)]
+    # The probe runs as a script, not as part of relocfw: it needs ncnn and numpy only,
+    # and starts in a tenth of a second instead of the two that importing torch takes.
+    command = [sys.executable, str(PROBE), str(param), str(weights)]
+    command += [str(len(kind.outputs)), *sizes]
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=CONVERSION_SECONDS)
+    except (OSError, subprocess.TimeoutExpired) as error:
+        raise DataError(f"the probe run did not finish ({type(error).__name__})") from error
+    if done.returncode < 0:
+        name = signal.Signals(-done.returncode).name
+        raise DataError(f"ncnn crashed ({name}) running the converted network")
+    if done.returncode != 0:
+        last = " | ".join(done.stderr.strip().splitlines()[-2:])
+        raise DataError(f"the converted network failed its probe run: {last}")
+
+
 def keep(param: Path, weights: Path, files: dict[str, Path], onnx_sha256: str) -> None:
     """Write the converted files beside the owner; the record last, so a run killed
     on the way leaves files whose hashes the record does not hold (converted again)."""
@@ -234,50 +256,3 @@ def versions() -> dict[str, str]:
     import importlib.metadata
 
     return {name: importlib.metadata.version(name) for name in ("ncnn", "pnnx")}
-
-
-class NcnnSession:
-    """An ncnn network behind onnxruntime's session call, `run(names, feeds)`, so
-    OnnxBackbone and the torch check run it as they run a graph.
-
-    Args:
-        param, weights: ncnn's layer and weight files (pnnx's naming: in0, out0, ...).
-        outputs: the graph's output names, in pnnx's order.
-        threads: cores each image's pass runs on.
-    """
-
-    def __init__(self, param: Path, weights: Path, outputs: Sequence[str], threads: int) -> None:
-        import ncnn
-
-        self.ncnn = ncnn
-        self.net = ncnn.Net()
-        self.net.opt.num_threads = int(threads)
-        for option in REDUCED_PRECISION:
-            if hasattr(self.net.opt, option):  # older ncnn lacks some
-                setattr(self.net.opt, option, False)
-        self.outputs = tuple(outputs)
-        self.blobs = tuple(f"out{number}" for number in range(len(self.outputs)))
-        # Kept: ncnn reads the weights file when loading, but a failed load says nothing.
-        if self.net.load_param(str(param)) != 0 or self.net.load_model(str(weights)) != 0:
-            raise DataError(f"ncnn cannot load {param} and {weights.name}")
-        names = (sorted(self.net.input_names()), sorted(self.net.output_names()))
-        if names != ([NCNN_INPUT], sorted(self.blobs)):
-            raise DataError(f"{param} has inputs and outputs {names}, not in0 and out0..")
-
-    def run(self, names: Sequence[str] | None, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
-        """The outputs `names` (None: all, as onnxruntime) of the images in `feeds`."""
-        images = np.ascontiguousarray(feeds[INPUT_NAME], dtype=np.float32)
-        if len(images) == 0:  # no shapes to give an empty answer (the pipeline never asks)
-            raise ValueError("NcnnSession.run needs at least one image")
-        answers: list[list[np.ndarray]] = [[] for _ in self.blobs]
-        for image in images:
-            with self.net.create_extractor() as extractor:
-                # The Mat shares `image`'s memory, alive until the extractor is done.
-                extractor.input(NCNN_INPUT, self.ncnn.Mat(image))
-                for number, blob in enumerate(self.blobs):
-                    code, answer = extractor.extract(blob)
-                    if code != 0:
-                        raise RuntimeError(f"ncnn could not compute {self.outputs[number]}")
-                    answers[number].append(np.array(answer))
-        by_name = {name: np.stack(a) for name, a in zip(self.outputs, answers, strict=True)}
-        return [by_name[name] for name in (self.outputs if names is None else names)]

@@ -260,3 +260,49 @@ def test_wanted_engine_refuses_ncnn_where_it_cannot_run(int8, device, message):
 def test_int8_options_are_refused_by_the_engine_itself(tmp_path):
     with pytest.raises(EngineUnavailableError, match="onnx.int8=dynamic is onnxruntime's"):
         ncnn_engine(tiny_posenet(), tmp_path / "net.pt", EngineOptions(int8="dynamic"))
+
+
+def test_a_network_whose_first_layer_works_in_place_answers_as_torch(images, tmp_path):
+    """EfficientNet-Lite0 scales its input in place in ncnn's first layer; ncnn
+    crashed the process on a Mat over numpy's memory until the input was copied."""
+    pytest.importorskip("efficientnet_lite_pytorch", reason="relocfw[efficientnet] not installed")
+    from relocfw.plugins.efficientnet_lite import EfficientNetLite0
+
+    torch.manual_seed(0)
+    backbone = EfficientNetLite0(input_size=64, feature_dim=32, pretrained=False).eval()
+    backbone.set_crop_scale(1.142857)
+    engine = ncnn_engine(backbone, tmp_path / "net.pt", ONE_THREAD, say=pytest.fail)
+    torch_way = Relocalizer(backbone, KMeansIndex(k=3), CentreCrop())
+    features = torch_way.fit(images.map)
+    engine_way = torch_way.replace(backbone=engine)
+    np.testing.assert_allclose(engine_way.describe(images.map), features, rtol=0, atol=TOLERANCE)
+    for image in images.queries:
+        assert_same_answer(engine_way.localize(image), torch_way.localize(image))
+
+
+def test_a_network_that_crashes_ncnn_is_refused_not_suffered(tmp_path, monkeypatch):
+    """The probe run is a process of its own: a crash there (here a stand-in that
+    dies of SIGSEGV) becomes one error naming the file, and nothing is cached."""
+    crashing = tmp_path / "crashing-python"
+    crashing.write_text("#!/bin/sh\nkill -SEGV $$\n")
+    crashing.chmod(0o755)
+    monkeypatch.setattr(ncnn_module.sys, "executable", str(crashing))
+    owner = tmp_path / "run" / "net.pt"
+    param = ncnn_files(owner, KINDS["full"])["param"]
+    message = f"{param}: converting .* ncnn crashed \\(SIGSEGV\\) running the converted network"
+    with pytest.raises(EngineUnavailableError, match=message):
+        ncnn_engine(tiny_posenet(), owner, ONE_THREAD, say=pytest.fail)
+    assert not list(owner.parent.glob("*.ncnn.*"))
+
+
+def test_files_of_other_ncnn_versions_are_converted_again(converted, tmp_path):
+    net = converted("head")
+    owner = cached_copy(net, tmp_path)
+    record_path = ncnn_files(owner, KINDS["full"])["json"]
+    record = json.loads(record_path.read_text())
+    record["versions"]["ncnn"] = "1.0.20200101"
+    record_path.write_text(json.dumps(record))
+    notes = []
+    ncnn_engine(net.backbone, owner, ONE_THREAD, say=notes.append)
+    (note,) = notes
+    assert "converted and probed with other ncnn / pnnx versions" in note
