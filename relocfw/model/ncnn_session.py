@@ -45,6 +45,11 @@ class NcnnSession:
         self.ncnn = ncnn
         self.net = ncnn.Net()
         self.net.opt.num_threads = int(threads)
+        # Each pass's blobs and scratch memory come from pools kept for the session
+        # instead of fresh allocations, as ncnn advises for repeated runs. Held here:
+        # ncnn keeps only a pointer (the options would outlive a temporary).
+        self.pools = (ncnn.PoolAllocator(), ncnn.PoolAllocator())
+        self.net.opt.blob_allocator, self.net.opt.workspace_allocator = self.pools
         for option in REDUCED_PRECISION:
             if hasattr(self.net.opt, option):  # older ncnn lacks some
                 setattr(self.net.opt, option, False)
