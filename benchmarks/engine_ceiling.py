@@ -34,7 +34,6 @@ import argparse
 import contextlib
 import copy
 import importlib.metadata
-import importlib.util
 import os
 import platform
 import tempfile
@@ -50,8 +49,13 @@ from engine_cost import method_pipeline, network
 
 from relocfw.core.multiply_adds import multiply_adds_by_layer
 from relocfw.model.cpu_flags import cpu_flags, int8_saturation_reason
-from relocfw.model.ncnn_engine import ncnn_engine
-from relocfw.model.onnx_engine import EngineOptions, graph_path, onnx_engine
+from relocfw.model.ncnn_engine import ncnn_engine, ncnn_installed
+from relocfw.model.onnx_engine import (
+    EngineOptions,
+    EngineUnavailableError,
+    graph_path,
+    onnx_engine,
+)
 from relocfw.model.onnx_graphs import KINDS
 
 WANTED_FLAGS = ("avx2", "fma", "avx512f", "avx512_vnni", "avx_vnni", "avx512_bf16", "amx_bf16")
@@ -179,16 +183,20 @@ def engines(
         print("openvino is not installed: its row is left out")
     except Exception as error:  # openvino's own types: a graph it cannot compile
         print(f"openvino cannot run the graph ({type(error).__name__}: {error}): row left out")
-    if importlib.util.find_spec("ncnn") and importlib.util.find_spec("pnnx"):
-        on_ncnn = ncnn_engine(net, owner, EngineOptions(threads=cores)).sessions["full"]
-        found["ncnn float32 (Winograd)"] = lambda: on_ncnn.run(None, {name: images})
-        with torch.inference_mode():
-            reference = net(channels_last).features.numpy()
-        fast = on_ncnn.run(["features"], {name: images})[0]
-        difference = np.abs(fast - reference).max() / np.abs(reference).max()
-        facts["ncnn_largest_relative_descriptor_difference"] = float(difference)
-    else:
+    if not ncnn_installed():
         print('ncnn or pnnx is not installed ("relocfw[ncnn]"): its row is left out')
+    else:
+        try:
+            on_ncnn = ncnn_engine(net, owner, EngineOptions(threads=cores)).sessions["full"]
+        except EngineUnavailableError as error:
+            print(f"ncnn cannot run the network ({error}): its row is left out")
+        else:
+            found["ncnn float32 (Winograd)"] = lambda: on_ncnn.run(None, {name: images})
+            with torch.inference_mode():
+                reference = net(channels_last).features.numpy()
+            fast = on_ncnn.run(["features"], {name: images})[0]
+            difference = np.abs(fast - reference).max() / np.abs(reference).max()
+            facts["ncnn_largest_relative_descriptor_difference"] = float(difference)
     modes = {"static": "onnxruntime int8 static"}
     if int8_saturation_reason() is None:  # VNNI: 8-bit weights multiply exactly
         modes["static_8bit"] = "onnxruntime int8 static, 8-bit weights"

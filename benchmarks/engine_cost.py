@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.metadata
-import importlib.util
 import os
 import platform
 import tempfile
@@ -47,7 +46,7 @@ from relocfw.core.interfaces import Backbone
 from relocfw.core.query_options import QueryOptions
 from relocfw.core.values import PoseOutput
 from relocfw.model.cpu_flags import int8_saturation_reason
-from relocfw.model.ncnn_engine import ncnn_engine
+from relocfw.model.ncnn_engine import ncnn_engine, ncnn_installed
 from relocfw.model.onnx_engine import EngineOptions, onnx_engine
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.ga_crop import GeneticCropSearch
@@ -249,15 +248,11 @@ def table(rows: list[dict], title: str, reference: str = "torch") -> str:
     return "\n".join(lines)
 
 
-def has_ncnn() -> bool:
-    return all(importlib.util.find_spec(name) is not None for name in ("ncnn", "pnnx"))
-
-
 def geometry_run(geometry: str, args: argparse.Namespace, folder: Path) -> list[dict]:
     engines = GPU_ENGINES if args.device.startswith("cuda") else CPU_ENGINES
     if int8_saturation_reason() is not None:  # no VNNI: 8-bit weights are refused
         engines = tuple(e for e in engines if e != "onnx-int8-8bit")
-    if not has_ncnn():
+    if not ncnn_installed():
         print('ncnn or pnnx is not installed ("relocfw[ncnn]"): its rows are left out')
         engines = tuple(e for e in engines if e != "ncnn")
     engines = tuple(e for e in engines if e in args.engines) or engines
@@ -292,7 +287,7 @@ def threads_study(args: argparse.Namespace, folder: Path) -> dict[str, list[dict
             # torch keeps every core for the pipeline's small torch operations.
             swapped = on_engine(base, "onnx", folder, maps, {"threads": count})
             threads.append(Pair(method, f"onnx {count}t", swapped, cores))
-            if has_ncnn():
+            if ncnn_installed():
                 swapped = on_engine(base, "ncnn", folder, maps, {"threads": count})
                 threads.append(Pair(method, f"ncnn {count}t", swapped, cores))
         for spin in (False, True):
@@ -346,7 +341,7 @@ def main() -> None:
         report["onnxruntime_version"] = onnxruntime.__version__
     except ImportError:
         pass
-    if has_ncnn():
+    if ncnn_installed():
         report["ncnn_version"] = importlib.metadata.version("ncnn")
         report["pnnx_version"] = importlib.metadata.version("pnnx")
     timed: Callable[[], float] = time.perf_counter

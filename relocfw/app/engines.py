@@ -66,6 +66,11 @@ def wanted_engine(cfg: DictConfig, device: torch.device) -> str:
             f"onnx.int8={options.int8} quantises onnxruntime's graphs, but engine=ncnn runs "
             "ncnn's float32 networks: use engine=onnx for int8, or drop onnx.int8"
         )
+    if engine == "ncnn" and options.spinning:
+        raise ConfigError(
+            "onnx.spinning=true sets onnxruntime's threads, but engine=ncnn runs ncnn, "
+            "whose threads wait as its OpenMP runtime decides: drop onnx.spinning"
+        )
     if engine == "torch" and options.int8 != "none":
         why = "engine=torch" if name_of(cfg.engine) == "torch" else f"device={device}"
         raise ConfigError(
@@ -113,7 +118,8 @@ def on_engine(
     except EngineUnavailableError as error:
         if name_of(cfg.engine) != "auto" or options.int8 != "none":
             asked = f"engine={engine}" if options.int8 == "none" else f"onnx.int8={options.int8}"
-            message = f"{asked} cannot run: {error} (engine=auto falls back to torch)"
+            instead = "engine=onnx runs onnxruntime; " if engine == "ncnn" else ""
+            message = f"{asked} cannot run: {error} ({instead}engine=auto falls back to torch)"
             raise ConfigError(message) from error
         warn(f"note: {error}; the network runs on torch (engine=torch silences this)")
         return relocalizer

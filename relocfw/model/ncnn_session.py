@@ -1,12 +1,18 @@
 """NcnnSession: an ncnn network behind onnxruntime's session call (engine=ncnn).
 
-Imports ncnn and numpy only, not relocfw's other modules nor torch, so that
-relocfw.model.ncnn_probe can run a converted network in a process of its own that
-starts in a tenth of a second.
+This file imports ncnn, numpy and the standard library only, never relocfw nor torch,
+because it is also the probe: `python -P ncnn_session.py PARAM BIN OUTPUTS THREADS
+H,W [H,W ...]` loads a network as engine=ncnn does and runs one seeded image of each
+size through it. ncnn is C++: a graph it mishandles crashes the process (it did,
+before the input was copied), which no exception handler catches. relocfw runs every
+network in the probe first (relocfw.model.ncnn_engine), so such a crash ends that
+process only and is reported as an error. Run as a script it starts in a tenth of a
+second, against two for anything that imports torch.
 """
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -14,19 +20,25 @@ import numpy as np
 
 # pnnx names the graph's input and outputs in0, out0, out1, ... in the ONNX order.
 NCNN_INPUT = "in0"
-# ncnn's reduced-precision storage and arithmetic, all off: the answers must be torch's.
-REDUCED_PRECISION = (
+# ncnn's reduced-precision storage and arithmetic and its GPU path, all off: the
+# answers must be torch's float32 ones, on the CPU.
+OFF = (
     "use_fp16_packed",
     "use_fp16_storage",
     "use_fp16_arithmetic",
     "use_bf16_packed",
     "use_bf16_storage",
     "use_int8_inference",
+    "use_vulkan_compute",
 )
 
 
 class NcnnLoadError(Exception):
     """ncnn cannot load the files, or they are not a converted relocfw graph."""
+
+
+class NcnnComputeError(Exception):
+    """ncnn could not compute an output of a loaded network."""
 
 
 class NcnnSession:
@@ -39,28 +51,35 @@ class NcnnSession:
         threads: cores each image's pass runs on.
     """
 
-    def __init__(self, param: Path, weights: Path, outputs: Sequence[str], threads: int) -> None:
+    def __init__(
+        self, param: str | Path, weights: str | Path, outputs: Sequence[str], threads: int
+    ) -> None:
         import ncnn
 
         self.ncnn = ncnn
+        # The net first, then its pools: attributes are released in this order, and
+        # the net must let go of its blobs before the pools that hold them go.
         self.net = ncnn.Net()
-        self.net.opt.num_threads = int(threads)
         # Each pass's blobs and scratch memory come from pools kept for the session
-        # instead of fresh allocations, as ncnn advises for repeated runs. Held here:
-        # ncnn keeps only a pointer (the options would outlive a temporary).
+        # instead of fresh allocations, as ncnn advises for repeated runs (measured:
+        # a sweep of 86 crops at 224 px 1.7x slower without them in one benchmark run,
+        # docs/engine.md#ncnn). ncnn keeps only a pointer: the session holds them.
         self.pools = (ncnn.PoolAllocator(), ncnn.PoolAllocator())
-        self.net.opt.blob_allocator, self.net.opt.workspace_allocator = self.pools
-        for option in REDUCED_PRECISION:
-            if hasattr(self.net.opt, option):  # older ncnn lacks some
-                setattr(self.net.opt, option, False)
+        options = self.net.opt
+        options.num_threads = int(threads)
+        options.blob_allocator, options.workspace_allocator = self.pools
+        for name in OFF:
+            setattr(options, name, False)
         self.outputs = tuple(outputs)
         self.blobs = tuple(f"out{number}" for number in range(len(self.outputs)))
-        # Kept: ncnn reads the weights file when loading, but a failed load says nothing.
-        if self.net.load_param(str(param)) != 0 or self.net.load_model(str(weights)) != 0:
-            raise NcnnLoadError(f"ncnn cannot load {param} and {Path(weights).name}")
+        # Both return codes are checked: ncnn says why on stderr, not to the caller.
+        if self.net.load_param(str(param)) != 0:
+            raise NcnnLoadError("ncnn cannot read its layers (.param)")
+        if self.net.load_model(str(weights)) != 0:
+            raise NcnnLoadError("ncnn cannot read its weights (.bin) for those layers")
         names = (sorted(self.net.input_names()), sorted(self.net.output_names()))
         if names != ([NCNN_INPUT], sorted(self.blobs)):
-            raise NcnnLoadError(f"{param} has inputs and outputs {names}, not in0 and out0..")
+            raise NcnnLoadError(f"its inputs and outputs are {names}, not in0 and out0..")
 
     def run(self, names: Sequence[str] | None, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
         """The outputs `names` (None: all, as onnxruntime) of the images in `feeds`."""
@@ -77,7 +96,31 @@ class NcnnSession:
                 for number, blob in enumerate(self.blobs):
                     code, answer = extractor.extract(blob)
                     if code != 0:
-                        raise RuntimeError(f"ncnn could not compute {self.outputs[number]}")
+                        raise NcnnComputeError(f"ncnn could not compute {self.outputs[number]}")
                     answers[number].append(np.array(answer))
         by_name = {name: np.stack(a) for name, a in zip(self.outputs, answers, strict=True)}
         return [by_name[name] for name in (self.outputs if names is None else names)]
+
+
+def probe(arguments: Sequence[str]) -> int:
+    """The probe run (see the module's docstring): 0 when every size ran and gave
+    finite answers; else 1 with one line on stderr saying why."""
+    param, weights, outputs, threads, *sizes = arguments
+    names = [f"out{number}" for number in range(int(outputs))]
+    try:
+        session = NcnnSession(param, weights, names, int(threads))
+        generator = np.random.default_rng(0)
+        for size in sizes:
+            height, width = (int(side) for side in size.split(","))
+            image = generator.random((1, 3, height, width), dtype=np.float32)
+            answers = session.run(None, {"images": image})
+            if not all(np.all(np.isfinite(answer)) for answer in answers):
+                raise NcnnComputeError(f"its answers are not finite at {height} x {width}")
+    except (NcnnLoadError, NcnnComputeError) as error:
+        print(error, file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(probe(sys.argv[1:]))

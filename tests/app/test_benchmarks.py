@@ -1,7 +1,6 @@
 """The benchmark scripts still run and write their JSON (tiny sizes; numbers not checked)."""
 
 import importlib
-import importlib.util
 import json
 import subprocess
 import sys
@@ -10,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from relocfw.model.cpu_flags import int8_saturation_reason
+from relocfw.model.ncnn_engine import ncnn_installed
 
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
@@ -179,7 +179,7 @@ def test_engine_ceiling(tmp_path):
     )
     engines = {r["engine"] for r in report["rows"]}
     assert {"torch float32", "onnxruntime float32", "onnxruntime int8 static"} <= engines
-    if importlib.util.find_spec("ncnn") and importlib.util.find_spec("pnnx"):
+    if ncnn_installed():
         assert "ncnn float32 (Winograd)" in engines
         assert report["ncnn_largest_relative_descriptor_difference"] < 1e-4
     assert report["multiply_adds_per_batch"] > 0
@@ -223,7 +223,7 @@ def test_engine_cost(tmp_path):
     engines = ["torch", "onnx", "onnx-int8"]
     if int8_saturation_reason() is None:  # 8-bit weights run only where the CPU has VNNI
         engines.append("onnx-int8-8bit")
-    ncnn = all(importlib.util.find_spec(name) for name in ("ncnn", "pnnx"))
+    ncnn = ncnn_installed()
     if ncnn:
         engines.append("ncnn")
     assert {(r["method"], r["engine"]) for r in rows} == {(m, e) for m in methods for e in engines}

@@ -7,6 +7,7 @@ a cache work on copies of its files. The query paths and the comparison with tor
 are engine=onnx's (tests/model/test_onnx_engine.py).
 """
 
+import ast
 import json
 import shutil
 import sys
@@ -31,8 +32,8 @@ from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
 
-pytest.importorskip("ncnn", reason='ncnn not installed (pip install "relocfw[ncnn]")')
-pytest.importorskip("pnnx", reason='pnnx not installed (pip install "relocfw[ncnn]")')
+if not ncnn_module.ncnn_installed():
+    pytest.skip('ncnn or pnnx not installed (pip install "relocfw[ncnn]")', allow_module_level=True)
 from tests.model.test_onnx_engine import (  # noqa: E402 - onnx's skips come with it
     PATHS,
     QUERY_PATHS,
@@ -203,7 +204,7 @@ def test_files_converted_from_another_graph_are_converted_again(converted, tmp_p
     assert all("it was converted from another ONNX graph" in n for n in ncnn_notes)
 
 
-def test_a_failed_conversion_names_the_file_and_caches_nothing(tmp_path, monkeypatch, capsys):
+def test_a_failed_conversion_names_the_file_and_caches_nothing(tmp_path, monkeypatch):
     def fails(*args, **kwargs):
         raise DataError("pnnx exited with 1: unsupported operator")
 
@@ -248,18 +249,22 @@ def test_on_engine_runs_ncnn_when_asked(converted, images, capsys):
     [
         ("none", "cuda", "engine=ncnn runs the network with ncnn on the CPU, but device=cuda"),
         ("static", "cpu", "onnx.int8=static quantises onnxruntime's graphs, but engine=ncnn"),
+        ("spin", "cpu", "onnx.spinning=true sets onnxruntime's threads, but engine=ncnn"),
     ],
-    ids=["on a GPU", "with int8"],
+    ids=["on a GPU", "with int8", "with spinning"],
 )
 def test_wanted_engine_refuses_ncnn_where_it_cannot_run(int8, device, message):
+    cfg = engine_config("ncnn", "none" if int8 == "spin" else int8)
+    cfg.onnx.spinning = int8 == "spin"
     with pytest.raises(ConfigError, match=message):
-        wanted_engine(engine_config("ncnn", int8), torch.device(device))
+        wanted_engine(cfg, torch.device(device))
     assert wanted_engine(engine_config("ncnn"), torch.device("cpu")) == "ncnn"
 
 
-def test_int8_options_are_refused_by_the_engine_itself(tmp_path):
-    with pytest.raises(EngineUnavailableError, match="onnx.int8=dynamic is onnxruntime's"):
-        ncnn_engine(tiny_posenet(), tmp_path / "net.pt", EngineOptions(int8="dynamic"))
+@pytest.mark.parametrize("options", [{"int8": "dynamic"}, {"spinning": True}])
+def test_onnxruntime_options_are_refused_by_the_engine_itself(tmp_path, options):
+    with pytest.raises(EngineUnavailableError, match="onnx.spinning are onnxruntime's"):
+        ncnn_engine(tiny_posenet(), tmp_path / "net.pt", EngineOptions(**options))
 
 
 def test_a_network_whose_first_layer_works_in_place_answers_as_torch(images, tmp_path):
@@ -305,4 +310,76 @@ def test_files_of_other_ncnn_versions_are_converted_again(converted, tmp_path):
     notes = []
     ncnn_engine(net.backbone, owner, ONE_THREAD, say=notes.append)
     (note,) = notes
-    assert "converted and probed with other ncnn / pnnx versions" in note
+    assert "it was converted with other ncnn / pnnx versions" in note
+
+
+def not_ncnn_layers(path: Path, other: Path) -> None:
+    """A .param ncnn cannot read, the record rewritten to match it: only ncnn's own
+    load can tell."""
+    path.write_text("7767517\n1 1\nNoSuchLayer x 0 1 in0\n")
+    record_path = path.with_name(path.name.rsplit(".", 1)[0] + ".json")
+    record = json.loads(record_path.read_text())
+    record["param_sha256"] = ncnn_module.hash_of(path)
+    record_path.write_text(json.dumps(record))
+
+
+def test_files_ncnn_cannot_load_are_converted_again(converted, tmp_path):
+    net = converted("head")
+    owner = cached_copy(net, tmp_path)
+    files = ncnn_files(owner, KINDS["full"])
+    not_ncnn_layers(files["param"], files["param"])
+    notes = []
+    ncnn_engine(net.backbone, owner, ONE_THREAD, say=notes.append)
+    (note,) = notes
+    assert note == (
+        f"note: rebuilt {files['param']}: the converted network failed its probe run: "
+        "ncnn cannot read its layers (.param)"
+    )
+
+
+def test_unusable_files_and_a_failed_conversion_say_both_and_are_removed(
+    converted, tmp_path, monkeypatch
+):
+    def fails(*args, **kwargs):
+        raise DataError("pnnx exited with 1: unsupported operator")
+
+    net = converted("head")
+    owner = cached_copy(net, tmp_path)
+    files = ncnn_files(owner, KINDS["full"])
+    files["json"].write_text("{")
+    monkeypatch.setattr(ncnn_module, "converted", fails)
+    with pytest.raises(EngineUnavailableError) as raised:
+        ncnn_engine(net.backbone, owner, ONE_THREAD, say=pytest.fail)
+    assert str(raised.value) == (
+        f"{files['param']}: converting the full graph for ncnn failed: pnnx exited with 1: "
+        "unsupported operator; the cached files were unusable too (it cannot be read "
+        "(JSONDecodeError)) and are removed"
+    )
+    assert not any(path.exists() for path in files.values())
+
+
+def test_a_probe_run_that_fails_says_why_in_one_line(tmp_path, monkeypatch):
+    failing = tmp_path / "failing-python"
+    failing.write_text(
+        "#!/bin/sh\necho 'Traceback' >&2\necho 'its answers are not finite' >&2\nexit 1\n"
+    )
+    failing.chmod(0o755)
+    monkeypatch.setattr(ncnn_module.sys, "executable", str(failing))
+    owner = tmp_path / "run" / "net.pt"
+    with pytest.raises(
+        EngineUnavailableError, match="failed its probe run: its answers are not finite$"
+    ):
+        ncnn_engine(tiny_posenet(), owner, ONE_THREAD, say=pytest.fail)
+
+
+def test_the_probe_imports_neither_relocfw_nor_torch():
+    """It runs as a script so that it starts fast and stands alone: its imports are
+    the standard library's, numpy's and ncnn's only."""
+    tree = ast.parse(Path(ncnn_module.PROBE).read_text())
+    imported = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            imported |= {alias.name.split(".")[0] for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            imported.add((node.module or "").split(".")[0])
+    assert imported <= {"__future__", "sys", "collections", "pathlib", "numpy", "ncnn"}

@@ -4,7 +4,6 @@ engine's own tests)."""
 
 import csv
 import importlib
-import importlib.util
 import re
 import sys
 from pathlib import Path
@@ -24,6 +23,7 @@ from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.model import onnx_export
 from relocfw.model.model_file import load_model, save_model
+from relocfw.model.ncnn_engine import ncnn_installed
 from relocfw.model.onnx_backbone import OnnxBackbone
 from relocfw.model.onnx_engine import EngineOptions, EngineUnavailableError, onnx_engine
 from relocfw.model.onnx_export import export_onnx, onnx_path
@@ -337,7 +337,7 @@ def test_cli_export_then_localize_on_either_engine(trained_model):
     robots = Path(f"{model}.onnx").read_bytes()
     runs = {}
     # engine=ncnn too where relocfw[ncnn] is installed (it is in relocfw[test]).
-    engines = ("torch", "onnx", "ncnn") if importlib.util.find_spec("ncnn") else ("torch", "onnx")
+    engines = ("torch", "onnx", "ncnn") if ncnn_installed() else ("torch", "onnx")
     for engine in engines:
         runs[engine] = home / f"localize-{engine}"
         result = localize_run(trained_model, model, runs[engine], f"engine={engine}")
