@@ -61,9 +61,9 @@ class NcnnSession:
         # the net must let go of its blobs before the pools that hold them go.
         self.net = ncnn.Net()
         # Each pass's blobs and scratch memory come from pools kept for the session
-        # instead of fresh allocations, as ncnn advises for repeated runs (measured:
-        # a sweep of 86 crops at 224 px 1.7x slower without them in one benchmark run,
-        # docs/engine.md#ncnn). ncnn keeps only a pointer: the session holds them.
+        # instead of fresh allocations, as ncnn advises for repeated runs (what they
+        # changed in the benchmarks: docs/engine.md#ncnn). ncnn keeps only a pointer
+        # to them: the session holds them.
         self.pools = (ncnn.PoolAllocator(), ncnn.PoolAllocator())
         options = self.net.opt
         options.num_threads = int(threads)

@@ -1,4 +1,5 @@
-"""OnnxBackbone: a trained torch backbone whose passes onnxruntime runs (engine=onnx).
+"""OnnxBackbone: a trained torch backbone whose passes onnxruntime runs (engine=onnx),
+or ncnn through sessions of the same call (engine=ncnn, relocfw.model.ncnn_session).
 
 It stands in for its torch `source` inside the same pipeline (relocfw.core.scorer):
 every dropout-free pass (plain scoring, the map, the chosen crop, random crops) runs
@@ -26,12 +27,13 @@ from relocfw.model.onnx_graphs import MAPS_OUTPUT
 
 
 class OnnxBackbone(Backbone):
-    """The torch backbone `source` with its passes run by onnxruntime sessions.
+    """The torch backbone `source` with its passes run by onnxruntime (or ncnn) sessions.
 
     Args:
         source: the trained torch backbone (the weights the graphs were exported from).
-        sessions: onnxruntime sessions by graph kind: "full" (required), "maps",
-            "lower" (relocfw.model.onnx_graphs). A missing kind's passes run in torch.
+        sessions: onnxruntime sessions (or relocfw.model.ncnn_session's) by graph
+            kind: "full" (required), "maps", "lower" (relocfw.model.onnx_graphs). A
+            missing kind's passes run in torch.
         description: how the engine runs, for reports (e.g. "onnxruntime, 2 threads").
         int8: the graphs' quantisation (relocfw.model.onnx_engine.INT8_MODES).
     """

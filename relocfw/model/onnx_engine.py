@@ -82,11 +82,11 @@ class EngineUnavailableError(Exception):
 
 @dataclass(frozen=True)
 class EngineOptions:
-    """How onnxruntime runs the graphs.
+    """How onnxruntime (and, for `threads`, ncnn) runs the graphs.
 
     Args:
-        threads: intra-op threads; None: the cores this process may use
-            (`available_cores`).
+        threads: intra-op threads (ncnn's threads with engine=ncnn); None: the cores
+            this process may use (`available_cores`).
         int8: "none", "dynamic" (weights), "static" (weights and activations,
             calibrated on map images; 7-bit weights) or "static_8bit" (the same with
             8-bit weights; CPUs with VNNI only).
