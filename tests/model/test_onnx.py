@@ -387,7 +387,7 @@ def test_cli_localize_backend_is_read_as_engine_and_needs_no_export(trained_mode
     [
         (
             ["engine=tensorrt"],
-            "engine=tensorrt: Invalid value 'tensorrt', expected one of [auto, torch, onnx]",
+            "engine=tensorrt: Invalid value 'tensorrt', expected one of [auto, torch, onnx, ncnn]",
         ),
         (
             ["onnx.int8=int4"],
