@@ -11,7 +11,6 @@ import ast
 import json
 import shutil
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,13 +23,11 @@ from relocfw.core.pipeline import Relocalizer
 from relocfw.core.query_options import QueryOptions
 from relocfw.model import ncnn_engine as ncnn_module
 from relocfw.model.ncnn_engine import NcnnSession, ncnn_engine, ncnn_files
-from relocfw.model.onnx_backbone import OnnxBackbone
 from relocfw.model.onnx_engine import EngineOptions, EngineUnavailableError, graph_path
 from relocfw.model.onnx_graphs import KINDS, kinds_needed
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.kmeans_index import KMeansIndex
-from relocfw.plugins.posenet import PoseNet
 
 if not ncnn_module.ncnn_installed():
     pytest.skip('ncnn or pnnx not installed (pip install "relocfw[ncnn]")', allow_module_level=True)
@@ -38,10 +35,12 @@ from tests.model.test_onnx_engine import (  # noqa: E402 - onnx's skips come wit
     PATHS,
     QUERY_PATHS,
     TOLERANCE,
+    Built,
     Images,
     assert_same_answer,
     count_runs,
     engine_config,
+    engines_made_once,
     seeded_images,
     tiny_posenet,
 )
@@ -54,32 +53,13 @@ def images() -> Images:
     return seeded_images()
 
 
-@dataclass(frozen=True)
-class Converted:
-    backbone: PoseNet
-    engine: OnnxBackbone
-    owner: Path
-
-
 @pytest.fixture(scope="module")
 def converted(tmp_path_factory):
     """converted(variant, seed): the network on ncnn, converted once a module."""
-    made = {}
-
-    def get(variant: str = "head", seed: int = 0) -> Converted:
-        if (variant, seed) not in made:
-            owner = tmp_path_factory.mktemp(f"ncnn-{variant}-{seed}") / "net.pt"
-            backbone = tiny_posenet(seed, variant)
-            notes = []
-            engine = ncnn_engine(backbone, owner, ONE_THREAD, say=notes.append)
-            assert notes == []
-            made[variant, seed] = Converted(backbone, engine, owner)
-        return made[variant, seed]
-
-    return get
+    return engines_made_once(tmp_path_factory, ncnn_engine, "ncnn")
 
 
-def cached_copy(net: Converted, folder: Path) -> Path:
+def cached_copy(net: Built, folder: Path) -> Path:
     """A new owner in `folder` with copies of `net`'s ONNX graphs and ncnn files."""
     owner = folder / "net.pt"
     for kind in kinds_needed(net.backbone):

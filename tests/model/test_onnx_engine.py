@@ -103,22 +103,28 @@ class Built:
     owner: Path
 
 
-@pytest.fixture(scope="module")
-def built(tmp_path_factory):
-    """built(variant, seed): the network's engine, its graphs exported once a module."""
+def engines_made_once(tmp_path_factory, make_engine, name: str):
+    """get(variant, seed): a tiny network and its engine by `make_engine(backbone,
+    owner, options, say)`, made once per (variant, seed) and module, saying nothing."""
     made = {}
 
     def get(variant: str = "head", seed: int = 0) -> Built:
         if (variant, seed) not in made:
-            owner = tmp_path_factory.mktemp(f"{variant}-{seed}") / "net.pt"
+            owner = tmp_path_factory.mktemp(f"{name}-{variant}-{seed}") / "net.pt"
             backbone = tiny_posenet(seed, variant)
             notes = []
-            engine = onnx_engine(backbone, owner, ONE_THREAD, say=notes.append)
+            engine = make_engine(backbone, owner, ONE_THREAD, say=notes.append)
             assert notes == []
             made[variant, seed] = Built(backbone, engine, owner)
         return made[variant, seed]
 
     return get
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """built(variant, seed): the network's engine, its graphs exported once a module."""
+    return engines_made_once(tmp_path_factory, onnx_engine, "onnx")
 
 
 def cached_copy(net: Built, folder: Path) -> Path:
