@@ -44,6 +44,7 @@ from tests.model.test_onnx_engine import (  # noqa: E402 - onnx's skips come wit
     seeded_images,
     tiny_posenet,
 )
+from tests.model.test_onnx_engine import cached_copy as onnx_cached_copy  # noqa: E402
 
 ONE_THREAD = EngineOptions(threads=1)
 
@@ -61,9 +62,8 @@ def converted(tmp_path_factory):
 
 def cached_copy(net: Built, folder: Path) -> Path:
     """A new owner in `folder` with copies of `net`'s ONNX graphs and ncnn files."""
-    owner = folder / "net.pt"
+    owner = onnx_cached_copy(net, folder)
     for kind in kinds_needed(net.backbone):
-        shutil.copyfile(graph_path(net.owner, kind), graph_path(owner, kind))
         for part, path in ncnn_files(net.owner, kind).items():
             shutil.copyfile(path, ncnn_files(owner, kind)[part])
     return owner
