@@ -16,7 +16,10 @@ and Bayesian PoseNet's kendall variant with 40 Monte Carlo samples of the centre
 
 Engines on a CPU: torch, onnx (float32), ncnn (float32, where relocfw[ncnn] is
 installed), onnx-int8 (onnx.int8=static: 7-bit weights, calibrated on the map views)
-and, where the CPU has VNNI, onnx-int8-8bit (onnx.int8=static_8bit). With --device
+and, where the CPU has VNNI, onnx-int8-8bit (onnx.int8=static_8bit); for the plain
+searches, onnx-int8-scout (query.scoring=scout with onnx.int8=static: the int8 graph
+scores the candidates, the float32 graph answers the chosen crop) and
+onnx-int8-scout-best3 (the same with query.rerank=3). With --device
 cuda: torch, torch-amp (float16 autocast) and torch-compile.
 --threads-study also times centre and plain GA at the paper geometry under every
 combination of torch threads, onnxruntime intra-op threads and thread spinning.
@@ -56,7 +59,19 @@ from relocfw.plugins.sweep_crop import SweepCrop
 
 CROP_SCALE = 1.142857  # PoseNet's 256 / 224, what every preset trains with
 METHODS = ("centre", "ga plain", "sweep plain", "ga shared", "mc kendall x40")
-CPU_ENGINES = ("torch", "onnx", "ncnn", "onnx-int8", "onnx-int8-8bit")
+CPU_ENGINES = (
+    "torch",
+    "onnx",
+    "ncnn",
+    "onnx-int8",
+    "onnx-int8-8bit",
+    "onnx-int8-scout",
+    "onnx-int8-scout-best3",
+)
+# query.scoring=scout engines -> query.rerank (the best N scouted crops re-scored).
+SCOUT_RERANK = {"onnx-int8-scout": 1, "onnx-int8-scout-best3": 3}
+# query.scoring=scout changes how a search's candidates are scored: plain searches only.
+SCOUTED_METHODS = ("ga plain", "sweep plain")
 GPU_ENGINES = ("torch", "torch-amp", "torch-compile")
 
 
@@ -140,6 +155,12 @@ def on_engine(
         mode = "static" if engine == "onnx-int8" else "static_8bit"
         settings = EngineOptions(int8=mode, **options)
         return relocalizer.replace(backbone=onnx_engine(backbone, owner, settings, calibration))
+    if engine in SCOUT_RERANK:
+        settings = EngineOptions(int8="static", scout=True, **options)
+        scouting = relocalizer.options.replace(scoring="scout", rerank=SCOUT_RERANK[engine])
+        return relocalizer.replace(
+            backbone=onnx_engine(backbone, owner, settings, calibration), options=scouting
+        )
     if engine == "torch-amp":
         return relocalizer.replace(backbone=Autocast(backbone))
     if engine == "torch-compile":
@@ -262,6 +283,8 @@ def geometry_run(geometry: str, args: argparse.Namespace, folder: Path) -> list[
     for method in args.methods:
         base = method_pipeline(geometry, method, maps, args)
         for engine in engines:
+            if engine in SCOUT_RERANK and method not in SCOUTED_METHODS:
+                continue
             started = time.perf_counter()
             pairs.append(Pair(method, engine, on_engine(base, engine, folder, maps, {})))
             print(f"{geometry} {method} {engine}: ready in {time.perf_counter() - started:.1f} s")

@@ -35,6 +35,7 @@ class Task(Enum):
 class Scoring(Enum):
     plain = "plain"
     shared = "shared"
+    scout = "scout"
 
 
 class Engine(Enum):

@@ -43,19 +43,45 @@ def warn(line: str) -> None:
     print(line, file=sys.stderr)
 
 
-def engine_options(cfg: DictConfig) -> EngineOptions:
+def engine_options(cfg: DictConfig, scout: bool = False) -> EngineOptions:
+    """The onnx.* options; `scout`: the query's scoring is scout (the int8 graph then
+    only scores candidates)."""
     onnx = cfg.onnx
     threads = None if onnx.threads is None else int(onnx.threads)
-    return EngineOptions(threads=threads, int8=name_of(onnx.int8), spinning=bool(onnx.spinning))
+    return EngineOptions(
+        threads=threads, int8=name_of(onnx.int8), spinning=bool(onnx.spinning), scout=scout
+    )
+
+
+def scout_asked(cfg: DictConfig) -> bool:
+    """query.scoring=scout set in the config (task=localize may read it from the model
+    file instead: `on_engine` checks that one)."""
+    query = cfg.get("query") or {}
+    return name_of(query.get("scoring")) == "scout"
+
+
+def check_scout(engine: str) -> None:
+    """ConfigError unless onnxruntime runs the float32 and int8 graphs scout scoring
+    needs (the int8 mode itself is checked by EngineOptions)."""
+    if engine != "onnx":
+        runs = "torch" if engine == "torch" else f"engine={engine}"
+        raise ConfigError(
+            f"query.scoring=scout scores candidate crops with onnxruntime's int8 graph, "
+            f"but the network runs on {runs} here: use engine=onnx (a CPU device) with "
+            f"onnx.int8=static, or query.scoring=plain"
+        )
 
 
 def wanted_engine(cfg: DictConfig, device: torch.device) -> str:
     """The engine this run uses, "torch", "onnx" or "ncnn"; ConfigError for engine
     options that cannot apply."""
     engine = name_of(cfg.engine)
-    options = engine_options(cfg)  # checked whatever the engine: a bad value is a typo
     if engine == "auto":
         engine = "onnx" if device.type == "cpu" else "torch"
+    scout = scout_asked(cfg)
+    if scout:
+        check_scout(engine)
+    options = engine_options(cfg, scout)  # checked whatever the engine: a bad value is a typo
     if engine in CPU_ENGINES and device.type != "cpu":
         raise ConfigError(
             f"engine={engine} runs the network with {CPU_ENGINES[engine]} on the CPU, but "
@@ -106,9 +132,12 @@ def on_engine(
     map, search and refiner of `relocalizer`.
     """
     engine = wanted_engine(cfg, device)
+    scout = relocalizer.options.scoring == "scout"  # a model file's scoring too
+    if scout:
+        check_scout(engine)
     if engine == "torch":
         return relocalizer
-    options = engine_options(cfg)
+    options = engine_options(cfg, scout)
     try:
         if engine == "ncnn":
             backbone = ncnn_engine(relocalizer.backbone, owner, options, say=warn)

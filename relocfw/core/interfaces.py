@@ -175,6 +175,14 @@ class Backbone(torch.nn.Module, ABC):
         """[n, D] descriptors from [n, C] average-pooled `feature_maps`."""
         raise NotImplementedError(f"{type(self).__name__} has no describe_pooled")
 
+    # Optional hook for scoring=scout (see relocfw.core.query_windows): a cheaper,
+    # approximate copy of the network (engine=onnx with onnx.int8: the int8 graph)
+    # ranks the candidate crops; the chosen crop's answer still comes from `forward`.
+    def scout_features(self, images: torch.Tensor) -> torch.Tensor:
+        """[B, D] the scout's descriptors of the images; without a cheaper copy, the
+        network's own (scoring=scout then chooses what scoring=plain does)."""
+        return self(images).features
+
     @property
     def shares_strip(self) -> bool:
         """True when both optional hooks are provided (scoring=shared is possible)."""

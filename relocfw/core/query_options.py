@@ -21,7 +21,9 @@ from typing import Any
 from relocfw.core.errors import ConfigError
 from relocfw.core.options import integer_at_least
 
-SCORINGS = ("plain", "shared")
+SCORINGS = ("plain", "shared", "scout")
+# Scorings whose distances only rank candidates: the chosen crop is then scored plainly.
+RANKING_SCORINGS = ("shared", "scout")
 # Options that left QueryOptions, and where they went (one clear refusal, not "unknown").
 MOVED_OUT = {
     "retrieval_k": "the retrieval baseline is a refiner now: refine=retrieval refine.k=K "
@@ -43,10 +45,15 @@ class QueryOptions:
             the whole strip and every candidate is pooled from its maps
             (relocfw.core.window_pooling); the chosen crop then goes through the plain
             path once, so the pose is the plain pose of that crop. Needs a backbone
-            with `feature_maps` and `describe_pooled`.
-        rerank: with scoring="shared", the `rerank` windows with the smallest shared
-            distances (the search's choice among them) go through the plain network in
-            one batch and the smallest plain distance chooses. 1: the search's choice.
+            with `feature_maps` and `describe_pooled`. "scout": every distinct window
+            goes through the backbone's scout (`Backbone.scout_features`: with
+            engine=onnx and onnx.int8, the int8 graph), a cheaper approximate copy of
+            the network; the chosen crop then goes through the plain network once, so
+            the pose is the float32 one of the crop the scout chose.
+        rerank: with scoring="shared" or "scout", the `rerank` windows with the
+            smallest such distances (the search's choice among them) go through the
+            plain network in one batch and the smallest plain distance chooses. 1: the
+            search's choice.
         crop_samples: > 0 answers with the mean pose of this many random windows of the
             chosen crop (test-time crop sampling, relocfw.core.sampling); with the
             backbone's Monte Carlo dropout on, each window gets its own mask. Needs a
@@ -79,11 +86,11 @@ class QueryOptions:
             object.__setattr__(self, name, integer_at_least(name, getattr(self, name), least))
         if self.scoring not in SCORINGS:
             raise ConfigError(f"scoring must be one of {', '.join(SCORINGS)}, got {self.scoring!r}")
-        if self.rerank > 1 and self.scoring != "shared":
+        if self.rerank > 1 and self.scoring not in RANKING_SCORINGS:
             raise ConfigError(
-                f"rerank={self.rerank} re-scores the best shared-scoring candidates "
-                f"plainly; with scoring={self.scoring} every candidate is already plain "
-                "(use scoring=shared)"
+                f"rerank={self.rerank} re-scores the best shared- or scout-scoring "
+                f"candidates plainly; with scoring={self.scoring} every candidate is "
+                "already plain (use scoring=shared or scoring=scout)"
             )
 
     def replace(self, **changes: Any) -> QueryOptions:

@@ -22,12 +22,13 @@ from relocfw.core.window_pooling import StripMaps
 
 
 class QueryWindows:
-    """A query's windows: their plain answers and, with scoring=shared, shared distances.
+    """A query's windows: their plain answers and, with scoring=shared or scout, the
+    distances that only rank candidates (`ranking`).
 
     Args:
         image: the query, H x W x 3 uint8 RGB (checked by the caller).
         scorer: the network and the map.
-        scoring: "plain" or "shared" (relocfw.core.query_options.QueryOptions).
+        scoring: "plain", "shared" or "scout" (relocfw.core.query_options.QueryOptions).
 
     Calling it with crops is the query's CropDistance (it also carries `query_seed`),
     what the older `CropSearch.search` form is given.
@@ -40,7 +41,8 @@ class QueryWindows:
         self.scoring = scoring
         self.strip = scorer.strip(image)
         self.plain: dict[Corner, tuple[float, NetworkAnswers]] = {}
-        self.shared: dict[Corner, float] = {}
+        # Shared or scout distances by window: they rank, the plain network answers.
+        self.ranking: dict[Corner, float] = {}
         self.strip_maps: StripMaps | None = None  # built on the first shared score
         self.crop_of: dict[Corner, Crop] = {}  # a crop for every window asked for
 
@@ -75,20 +77,31 @@ class QueryWindows:
         if new:
             self.keep_plain(new, self.scorer.plain(self.strip, new))
 
-    def score_shared(self, corners: Sequence[Corner]) -> None:
-        new = list(dict.fromkeys(c for c in corners if c not in self.shared))
+    def unranked(self, corners: Sequence[Corner]) -> list[Corner]:
+        """Distinct windows among `corners` without a shared or scout distance yet."""
+        return list(dict.fromkeys(c for c in corners if c not in self.ranking))
+
+    def keep_ranking(self, corners: Sequence[Corner], distances: np.ndarray) -> None:
+        self.ranking.update(zip(corners, (float(d) for d in distances), strict=True))
+
+    def score_ranking(self, corners: Sequence[Corner]) -> None:
+        """Shared or scout distances of the windows not scored so yet."""
+        new = self.unranked(corners)
         if not new:
             return
-        if self.strip_maps is None:
-            self.strip_maps = self.scorer.strip_maps(self.strip)
-        distances = self.scorer.shared(self.strip_maps, new)
-        self.shared.update(zip(new, (float(d) for d in distances), strict=True))
+        if self.scoring == "scout":
+            (distances,) = self.scorer.scout_together([(self.strip, new)])
+        else:
+            if self.strip_maps is None:
+                self.strip_maps = self.scorer.strip_maps(self.strip)
+            distances = self.scorer.shared(self.strip_maps, new)
+        self.keep_ranking(new, distances)
 
     def distances(self, corners: Sequence[Corner]) -> np.ndarray:
         """[n] distances of windows already scored the way `scoring` says."""
-        if self.scoring == "shared":
-            return np.array([self.shared[c] for c in corners])
-        return np.array([self.plain[c][0] for c in corners])
+        if self.scoring == "plain":
+            return np.array([self.plain[c][0] for c in corners])
+        return np.array([self.ranking[c] for c in corners])
 
     def scores(self, corners: Sequence[Corner]) -> CropScores:
         """Plain windows' distances with their answers (`CropSearch.sees_answers`)."""
@@ -102,26 +115,29 @@ class QueryWindows:
 
     def __call__(self, crops: Sequence[Crop]) -> np.ndarray:
         corners = self.corners(crops)
-        if self.scoring == "shared":
-            self.score_shared(corners)
-        else:
+        if self.scoring == "plain":
             self.score_plain(corners)
+        else:
+            self.score_ranking(corners)
         return self.distances(corners)
 
     def rerank_candidates(self, chosen: Crop, count: int) -> list[Corner]:
-        """The windows `rerank` compares: the chosen one first, then the best shared ones."""
+        """The windows `rerank` compares: the chosen one first, then the best ranked
+        ones (shared or scout distances)."""
         corner = self.strip.window(chosen)
-        if count <= 1 or not self.shared:
+        if count <= 1 or not self.ranking:
             return [corner]
-        ranked = sorted(self.shared, key=self.shared.__getitem__)
+        ranked = sorted(self.ranking, key=self.ranking.__getitem__)
         return list(dict.fromkeys([corner, *ranked]))[:count]
 
     def rerank(self, chosen: Crop, count: int) -> Crop:
-        """With shared scoring, the best of the `count` best shared windows by plain
-        distance (the search's own choice always among them); `chosen` otherwise.
+        """With shared or scout scoring, the best of the `count` best windows by those
+        distances, by plain distance (the search's own choice always among them);
+        `chosen` otherwise.
 
-        The shared distances only rank: the candidates go through the plain network
-        in one batch (with other queries' in `localize_many`, scored beforehand).
+        The shared or scout distances only rank: the candidates go through the plain
+        network in one batch (with other queries' in `localize_many`, scored
+        beforehand).
         """
         candidates = self.rerank_candidates(chosen, count)
         if len(candidates) == 1:
@@ -138,10 +154,12 @@ class QueryWindows:
 
     @property
     def evaluations(self) -> int:
-        """Distinct windows scored, plainly or shared."""
-        return len(set(self.plain) | set(self.shared))
+        """Distinct windows scored, plainly, shared or by the scout."""
+        return len(set(self.plain) | set(self.ranking))
 
     def network_passes(self) -> float:
-        """Plain windows plus, with shared scoring, the strip pass in window passes."""
+        """Plain windows plus, with shared scoring, the strip pass in window passes,
+        and with scout scoring, the scout's passes (each a whole, cheaper one)."""
         strip = 0.0 if self.strip_maps is None else self.scorer.strip_passes(self.strip)
-        return len(self.plain) + strip
+        scouted = len(self.ranking) if self.scoring == "scout" else 0
+        return len(self.plain) + strip + scouted

@@ -6,7 +6,9 @@ benchmarks measure the very same path. The two ways to score a candidate window:
 
 - plain: cut the window out of the strip and run the whole network on it (the paper);
 - shared: run the trunk once over the whole strip and pool each window's descriptor
-  from its maps (relocfw.core.window_pooling).
+  from its maps (relocfw.core.window_pooling);
+- scout: cut the window out and run the backbone's cheaper copy on it (an int8 graph,
+  `Backbone.scout_features`); its distances only rank candidates.
 """
 
 from __future__ import annotations
@@ -158,6 +160,24 @@ class Scorer:
             )
             start = end
         return split
+
+    @torch.inference_mode()
+    def scout_together(
+        self, requests: Sequence[tuple[Strip, Sequence[Corner]]]
+    ) -> list[np.ndarray]:
+        """Map distances of several queries' windows by the backbone's scout
+        (scoring=scout), `batch_size` windows per pass, split back per query."""
+        windows = torch.stack([strip.cut(c) for strip, corners in requests for c in corners])
+        parts = []
+        # Dropout-free, as every scoring pass (a backbone may sample by default).
+        with monte_carlo(self.backbone, 0):
+            for start in range(0, len(windows), self.batch_size):
+                batch = to_network_input(windows[start : start + self.batch_size].to(self.device))
+                batch = batch.contiguous(memory_format=self.memory_format)
+                parts.append(as_numpy(self.backbone.scout_features(batch), len(batch)))
+        distances = self.map_distance(np.concatenate(parts))
+        ends = np.cumsum([len(corners) for _, corners in requests])
+        return np.split(distances, ends[:-1])
 
     def plain_of_windows(self, windows: torch.Tensor) -> tuple[np.ndarray, NetworkAnswers]:
         """Map distances [n] and network answers of n uint8 windows [n, 3, s, s]."""

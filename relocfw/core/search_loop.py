@@ -5,7 +5,8 @@ sent their distances. A round collects what every unfinished query asks, scores 
 new plain windows of all of them in one merged forward pass (split into `batch_size`
 chunks), sends each query its distances, and goes on until every search has named its
 crop. No threads: an error is raised where it happens, and Ctrl-C stops the loop at
-once. Shared scoring pools each query from its own strip's maps, query by query.
+once. Shared scoring pools each query from its own strip's maps, query by query;
+scout scoring merges the queries' windows as plain scoring does.
 
 A search that only defines the older `search(width, height, distance)` blocks inside
 `distance`, so its queries run one at a time.
@@ -60,7 +61,7 @@ def score_chosen_together(
     queries: Sequence[QueryWindows], crops: Sequence[Crop], rerank: int
 ) -> None:
     """The plain windows every query's answer needs after its search (its chosen crop's
-    and, with shared scoring, its rerank candidates), in merged forward passes."""
+    and, with shared or scout scoring, its rerank candidates), in merged forward passes."""
     pairs = enumerate(zip(queries, crops, strict=True))
     needed = {member: query.rerank_candidates(crop, rerank) for member, (query, crop) in pairs}
     score_plain_together(queries, needed)
@@ -69,12 +70,15 @@ def score_chosen_together(
 def score_round(queries: Sequence[QueryWindows], asked: dict[int, list]) -> None:
     """Score every window asked for this round that its query has not scored yet."""
     plain: dict[int, list] = {}
+    scout: dict[int, list] = {}
     for member, corners in asked.items():
-        if queries[member].scoring == "shared":
-            queries[member].score_shared(corners)
+        scoring = queries[member].scoring
+        if scoring == "shared":  # each query from its own strip's maps
+            queries[member].score_ranking(corners)
         else:
-            plain[member] = corners
+            (scout if scoring == "scout" else plain)[member] = corners
     score_plain_together(queries, plain)
+    score_scout_together(queries, scout)
 
 
 def score_plain_together(queries: Sequence[QueryWindows], wanted: dict[int, list]) -> None:
@@ -86,6 +90,17 @@ def score_plain_together(queries: Sequence[QueryWindows], wanted: dict[int, list
     scored = scorer.plain_together([(queries[m].strip, corners) for m, corners in plain.items()])
     for (member, corners), answers in zip(plain.items(), scored, strict=True):
         queries[member].keep_plain(corners, answers)
+
+
+def score_scout_together(queries: Sequence[QueryWindows], wanted: dict[int, list]) -> None:
+    """Scout windows of several queries, those not scored yet, in one merged pass."""
+    new = {m: corners for m, c in wanted.items() if (corners := queries[m].unranked(c))}
+    if not new:
+        return
+    scorer = queries[next(iter(new))].scorer
+    scored = scorer.scout_together([(queries[m].strip, corners) for m, corners in new.items()])
+    for (member, corners), distances in zip(new.items(), scored, strict=True):
+        queries[member].keep_ranking(corners, distances)
 
 
 def checked(search: CropSearch, crop: object, query: QueryWindows) -> Crop:

@@ -36,13 +36,21 @@ class OnnxBackbone(Backbone):
             missing kind's passes run in torch.
         description: how the engine runs, for reports (e.g. "onnxruntime, 2 threads").
         int8: the graphs' quantisation (relocfw.model.onnx_engine.INT8_MODES).
+        scout: a session of a cheaper copy of the full graph (the int8 one) for
+            scoring=scout's candidates, `sessions` then being float32; None: the full
+            graph scouts (what scoring=plain computes).
     """
 
     # Inputs cross to numpy as they are: NCHW contiguous is what the graphs expect.
     channels_last = False
 
     def __init__(
-        self, source: Backbone, sessions: Mapping[str, Any], description: str, int8: str = "none"
+        self,
+        source: Backbone,
+        sessions: Mapping[str, Any],
+        description: str,
+        int8: str = "none",
+        scout: Any = None,
     ) -> None:
         super().__init__()
         if "full" not in sessions:
@@ -51,6 +59,7 @@ class OnnxBackbone(Backbone):
         self.sessions = dict(sessions)
         self.description = description
         self.int8 = int8
+        self.scout = scout
         self.input_size = int(source.input_size)
         self.feature_dim = int(source.feature_dim)
         self.pretrained = bool(source.pretrained)
@@ -101,6 +110,13 @@ class OnnxBackbone(Backbone):
             return self.source(images)  # a plugin's own sampling: torch throughout
         lower = self.lower_maps if "lower" in self.sessions else None
         return self.source.monte_carlo_answer(images, self.feature_maps, lower)
+
+    def scout_features(self, images: torch.Tensor) -> torch.Tensor:
+        if self.scout is None:
+            return super().scout_features(images)
+        array = np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
+        (features,) = self.scout.run(["features"], {INPUT_NAME: array})
+        return torch.from_numpy(features)
 
     def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
         if "maps" not in self.sessions:

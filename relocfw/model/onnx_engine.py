@@ -16,6 +16,9 @@ needs them, with 7-bit weights that give the same answers on every x86 CPU;
 onnxruntime's u8 x s8 products saturate with them); "dynamic" quantises weights only.
 Quantised graphs answer differently from torch by design, so they are checked for
 finite answers only; what they cost in accuracy is measured (docs/engine.md).
+With `EngineOptions.scout` (query.scoring=scout) only the full graph is quantised,
+and only to scout the crop search's candidates: every other pass, the chosen crop's
+answer included, runs the float32 graphs.
 """
 
 from __future__ import annotations
@@ -93,16 +96,25 @@ class EngineOptions:
         spinning: let idle onnxruntime threads spin for work. Off by default: between
             passes the pipeline runs torch and BLAS code on the same cores, which
             spinning threads slow down (benchmarks/engine_cost.py measures both).
+        scout: the int8 full graph only scouts candidate crops (query.scoring=scout);
+            every other pass runs float32. Needs an int8 mode.
     """
 
     threads: int | None = None
     int8: str = "none"
     spinning: bool = False
+    scout: bool = False
 
     def __post_init__(self) -> None:
         if self.int8 not in INT8_MODES:
             choices = ", ".join(INT8_MODES)
             raise ConfigError(f"onnx.int8 must be one of {choices}, got {self.int8!r}")
+        if self.scout and self.int8 == "none":
+            raise ConfigError(
+                "query.scoring=scout scores candidate crops with the int8 graph: set "
+                "onnx.int8 (static: 7-bit weights; docs/engine.md#int8), or use "
+                "query.scoring=plain"
+            )
         if self.threads is not None and int(self.threads) < 1:
             raise ConfigError(f"onnx.threads must be >= 1 (null: every core), got {self.threads}")
 
@@ -178,11 +190,11 @@ def onnx_engine(
     fingerprint = weights_fingerprint(source)
     threads = int(options.threads or available_cores())
     open_session = session_opener(threads, options.spinning)
-    sessions = {}
+    sessions, scout = {}, None
     for kind in kinds_needed(source):
         session, data = float_graph(network, kind, owner, fingerprint, open_session, say)
-        if options.int8 != "none":
-            session = int8_graph(
+        if options.int8 != "none" and (kind.name == "full" or not options.scout):
+            quantised_session = int8_graph(
                 network,
                 kind,
                 owner,
@@ -193,10 +205,16 @@ def onnx_engine(
                 open_session,
                 say,
             )
+            if options.scout:
+                scout = quantised_session
+            else:
+                session = quantised_session
         sessions[kind.name] = session
     precision = "float32" if options.int8 == "none" else f"int8 {options.int8}"
+    if options.scout:
+        precision = f"float32, int8 {options.int8} scout"
     description = f"onnxruntime {onnxruntime.__version__}, {precision}, {threads} threads"
-    return OnnxBackbone(source, sessions, description, options.int8)
+    return OnnxBackbone(source, sessions, description, options.int8, scout)
 
 
 def session_opener(threads: int, spinning: bool = False) -> Callable[[bytes | str], Any]:

@@ -193,7 +193,8 @@ def test_engine_ceiling(tmp_path):
 
 def test_engine_cost(tmp_path):
     pytest.importorskip("onnxruntime", reason="relocfw[onnx] not installed")
-    methods = ["centre", "mc kendall x40"]  # the full and maps graphs, torch's samples
+    # The full and maps graphs, torch's samples, and a search for the int8 scout.
+    methods = ["centre", "mc kendall x40", "ga plain"]
     report = run_script(
         "engine_cost.py",
         tmp_path / "e.json",
@@ -226,7 +227,10 @@ def test_engine_cost(tmp_path):
     ncnn = ncnn_installed()
     if ncnn:
         engines.append("ncnn")
-    assert {(r["method"], r["engine"]) for r in rows} == {(m, e) for m in methods for e in engines}
+    expected = {(m, e) for m in methods for e in engines}
+    scouts = ("onnx-int8-scout", "onnx-int8-scout-best3")
+    expected |= {(m, e) for m in methods for e in scouts if m in ("ga plain", "sweep plain")}
+    assert {(r["method"], r["engine"]) for r in rows} == expected
     assert all(r["ms_per_query"] > 0 for r in rows)
     threads = {r["engine"] for r in report["threads"]["threads"]}
     assert ("ncnn 1t" in threads) == ncnn

@@ -163,7 +163,13 @@ def test_compare_of_the_dropout_variants(tmp_path, cache):
         (["train.optimizer=rmsprop"], "train.optimizer=rmsprop: Invalid value 'rmsprop'"),
         (["train.log=wandb"], "expected one of [none, tensorboard]"),
         (["query.crop_samples=4", "train.crop_scale=1.0"], "the window fills the crop"),
-        (["query.rerank=3"], "query.rerank=3 re-scores the best shared-scoring candidates"),
+        (["query.rerank=3"], "query.rerank=3 re-scores the best shared- or scout-scoring"),
+        (["query.scoring=scout"], "query.scoring=scout scores candidate crops with the int8"),
+        (
+            ["query.scoring=scout", "engine=torch"],
+            "query.scoring=scout scores candidate crops with onnxruntime's int8 graph, but "
+            "the network runs on torch here",
+        ),
         (["query.queries_at_once=0"], "query.queries_at_once must be at least 1, got 0"),
         (["task=nosuch"], "task=nosuch: Invalid value 'nosuch', expected one of [relocalize,"),
         (["device=cuda:7"], "device"),

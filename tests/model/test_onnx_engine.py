@@ -350,12 +350,15 @@ def test_a_graph_whose_metadata_lies_is_caught_by_its_answers(built, images, tmp
     assert_answers_as_torch(net.backbone, engine, images)
 
 
-def engine_config(engine: str = "auto", int8: str = "none", quiet: bool = False, threads=1):
+def engine_config(
+    engine: str = "auto", int8: str = "none", quiet: bool = False, threads=1, scoring=None
+):
     return OmegaConf.create(
         {
             "engine": engine,
             "onnx": {"threads": threads, "int8": int8, "spinning": False},
             "quiet": quiet,
+            "query": {"scoring": scoring},
         }
     )
 
@@ -632,6 +635,59 @@ def test_relocalize_keeps_static_graphs_beside_the_model_file(
     # A float engine keeps nothing beside the model file: its graphs can be remade.
     keep_graphs_beside(relocalizer.replace(backbone=net.engine), checkpoint, tmp_path / "m2")
     assert not list(tmp_path.glob("m2*"))
+
+
+def test_an_int8_scout_ranks_and_the_float32_graphs_answer(built, images, tmp_path, monkeypatch):
+    net = built("head")
+    owner = cached_copy(net, tmp_path)
+    options = EngineOptions(threads=1, int8="static", scout=True)
+    engine = onnx_engine(net.backbone, owner, options, images.map, say=pytest.fail)
+    assert engine.description.endswith("float32, int8 static scout, 1 threads")
+    # Only the full graph is quantised: every other pass runs float32.
+    assert [p.name for p in tmp_path.glob("*int8*")] == ["net.pt-full.int8-static.onnx"]
+    torch_way = Relocalizer(net.backbone, KMeansIndex(k=3), GeneticCropSearch(seed=0))
+    torch_way.fit(images.map)
+    scouted = torch_way.replace(backbone=engine, options=QueryOptions(scoring="scout"))
+    counted = count_runs(engine, monkeypatch)
+    scout = CountedSession(engine.scout)
+    monkeypatch.setattr(engine, "scout", scout)
+    for image in images.queries:
+        answer = scouted.localize(image)
+        strip = torch_way.scorer.strip(image)
+        window = strip.cut(strip.window(answer.crop))[None]
+        exact = torch_way.scorer.forward(window)
+        np.testing.assert_allclose(answer.pose.position, exact.positions[0], atol=TOLERANCE)
+        np.testing.assert_allclose(answer.pose.quaternion, exact.quaternions[0], atol=TOLERANCE)
+        # The scout is the int8 graph: its descriptors are not the float32 ones.
+        inputs = window.float() / 255
+        with torch.inference_mode():
+            rounded = engine.scout_features(inputs).numpy()
+        assert np.abs(rounded - exact.features).max() > 1e-3
+    # The float32 full graph ran once per query (its chosen crop), the scout the rest.
+    assert counted["full"].runs == len(images.queries)
+    assert scout.runs >= len(images.queries)
+
+
+def test_scout_scoring_needs_onnxruntimes_int8_graphs(built, images):
+    with pytest.raises(ConfigError, match="query.scoring=scout .* set onnx.int8"):
+        EngineOptions(scout=True)
+    refusals = [
+        ("torch", "static", "cpu", "but the network runs on torch here"),
+        ("auto", "static", "cuda", "but the network runs on torch here"),
+        ("ncnn", "none", "cpu", "but the network runs on engine=ncnn here"),
+        ("auto", "none", "cpu", "query.scoring=scout scores candidate crops with the int8 graph"),
+    ]
+    for engine, int8, device, message in refusals:
+        with pytest.raises(ConfigError, match=message):
+            wanted_engine(engine_config(engine, int8, scoring="scout"), torch.device(device))
+    cfg = engine_config("auto", "static", scoring="scout")
+    assert wanted_engine(cfg, torch.device("cpu")) == "onnx"
+    # A model file's scoring (task=localize) is checked against the engine options too.
+    net = built("head")
+    options = QueryOptions(scoring="scout")
+    relocalizer = Relocalizer(net.backbone, ExhaustiveIndex(), CentreCrop(), options)
+    with pytest.raises(ConfigError, match="set onnx.int8"):
+        on_engine(engine_config("auto"), relocalizer, net.owner, torch.device("cpu"))
 
 
 @pytest.mark.parametrize(
