@@ -43,7 +43,7 @@ def warn(line: str) -> None:
     print(line, file=sys.stderr)
 
 
-def engine_options(cfg: DictConfig, scout: bool = False) -> EngineOptions:
+def engine_options(cfg: DictConfig, *, scout: bool = False) -> EngineOptions:
     """The onnx.* options; `scout`: the query's scoring is scout (the int8 graph then
     only scores candidates)."""
     onnx = cfg.onnx
@@ -81,7 +81,8 @@ def wanted_engine(cfg: DictConfig, device: torch.device) -> str:
     scout = scout_asked(cfg)
     if scout:
         check_scout(engine)
-    options = engine_options(cfg, scout)  # checked whatever the engine: a bad value is a typo
+    # Checked whatever the engine: a bad value is a typo.
+    options = engine_options(cfg, scout=scout)
     if engine in CPU_ENGINES and device.type != "cpu":
         raise ConfigError(
             f"engine={engine} runs the network with {CPU_ENGINES[engine]} on the CPU, but "
@@ -133,11 +134,16 @@ def on_engine(
     """
     engine = wanted_engine(cfg, device)
     scout = relocalizer.options.scoring == "scout"  # a model file's scoring too
-    if scout:
-        check_scout(engine)
+    # Set by the model file, not the command line: say so, the user never typed it.
+    origin = "" if scout_asked(cfg) or not scout else " (query.scoring=scout is the model file's)"
+    try:
+        if scout:
+            check_scout(engine)
+        options = engine_options(cfg, scout=scout)
+    except ConfigError as error:
+        raise ConfigError(f"{error}{origin}") from error
     if engine == "torch":
         return relocalizer
-    options = engine_options(cfg, scout)
     try:
         if engine == "ncnn":
             backbone = ncnn_engine(relocalizer.backbone, owner, options, say=warn)
@@ -148,7 +154,9 @@ def on_engine(
         if name_of(cfg.engine) != "auto" or options.int8 != "none":
             asked = f"engine={engine}" if options.int8 == "none" else f"onnx.int8={options.int8}"
             instead = "engine=onnx runs onnxruntime; " if engine == "ncnn" else ""
-            message = f"{asked} cannot run: {error} ({instead}engine=auto falls back to torch)"
+            # int8 is never replaced by torch, whatever the engine: no fallback to offer.
+            hint = f" ({instead}engine=auto falls back to torch)" if options.int8 == "none" else ""
+            message = f"{asked} cannot run: {error}{hint}"
             raise ConfigError(message) from error
         warn(f"note: {error}; the network runs on torch (engine=torch silences this)")
         return relocalizer

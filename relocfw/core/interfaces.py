@@ -183,6 +183,11 @@ class Backbone(torch.nn.Module, ABC):
         network's own (scoring=scout then chooses what scoring=plain does)."""
         return self(images).features
 
+    def scout_refusal(self) -> str | None:
+        """Why scoring=scout cannot run on this backbone as documented (its chosen
+        crop answered at full precision); None: it can."""
+        return None
+
     @property
     def shares_strip(self) -> bool:
         """True when both optional hooks are provided (scoring=shared is possible)."""

@@ -4,7 +4,7 @@ A query goes through six stages, each in a module of its own:
 
     strip     the image scaled for the network          relocfw.core.imaging.Strip
     search    which square crop is closest to the map   CropSearch.propose, core.search_loop
-    rerank    shared-scoring candidates re-scored       QueryWindows.rerank
+    rerank    shared or scout candidates re-scored      QueryWindows.rerank
     sample    the chosen crop's test-time samples       relocfw.core.sampled_answer
     pose      the network's pose of the chosen window   NetworkAnswers
     refine    the final pose (retrieval, features)      PoseRefiner (relocfw.core.refinement)
@@ -78,6 +78,8 @@ def check_options(
             f"scoring=shared needs a backbone with feature_maps and describe_pooled; "
             f"{type(backbone).__name__} lacks them (use scoring=plain)"
         )
+    if options.scoring == "scout" and (why := backbone.scout_refusal()) is not None:
+        raise ConfigError(f"scoring=scout: {why}")
     check_sampling(options.crop_samples, configured_samples(backbone), crop_scale, refiner)
     if search is not None and search.sees_answers:
         check_search_sees_answers(options, backbone, search)

@@ -75,8 +75,10 @@ def score_round(queries: Sequence[QueryWindows], asked: dict[int, list]) -> None
         scoring = queries[member].scoring
         if scoring == "shared":  # each query from its own strip's maps
             queries[member].score_ranking(corners)
+        elif scoring == "scout":
+            scout[member] = corners
         else:
-            (scout if scoring == "scout" else plain)[member] = corners
+            plain[member] = corners
     score_plain_together(queries, plain)
     score_scout_together(queries, scout)
 

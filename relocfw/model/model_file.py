@@ -246,7 +246,7 @@ def load_model(
     given = {k: v for k, v in dict(overrides or {}).items() if v is not None}
 
     def settled(values: dict[str, Any]) -> dict[str, Any]:
-        # Re-ranking re-scores shared candidates: with plain scoring (asked for now, or
+        # Re-ranking re-scores shared or scout candidates: with plain scoring (asked for now, or
         # a format 2 file, which did not store its scoring) a stored rerank is moot.
         if values.get("scoring", "plain") == "plain" and "rerank" not in given:
             values["rerank"] = 1

@@ -3,7 +3,8 @@ or ncnn through sessions of the same call (engine=ncnn, relocfw.model.ncnn_sessi
 
 It stands in for its torch `source` inside the same pipeline (relocfw.core.scorer):
 every dropout-free pass (plain scoring, the map, the chosen crop, random crops) runs
-the full graph; scoring=shared runs the maps graph over the whole strip; Monte Carlo
+the full graph; scoring=shared runs the maps graph over the whole strip;
+scoring=scout runs the `scout` session (the int8 full graph) on the candidates; Monte Carlo
 dropout runs the dropout-free layers below the first dropout as a graph and the
 sampled layers above it in torch (relocfw.model.onnx_graphs says why). The answers
 are the source's to float32 rounding; the source itself is the model (what model
@@ -110,6 +111,15 @@ class OnnxBackbone(Backbone):
             return self.source(images)  # a plugin's own sampling: torch throughout
         lower = self.lower_maps if "lower" in self.sessions else None
         return self.source.monte_carlo_answer(images, self.feature_maps, lower)
+
+    def scout_refusal(self) -> str | None:
+        if self.scout is None and self.int8 != "none":
+            return (
+                f"the engine's graphs are int8 {self.int8} throughout, so the chosen crop "
+                "would be answered in int8 too: make it with EngineOptions(int8=..., "
+                "scout=True), whose other graphs stay float32"
+            )
+        return None
 
     def scout_features(self, images: torch.Tensor) -> torch.Tensor:
         if self.scout is None:

@@ -97,7 +97,9 @@ class EngineOptions:
             passes the pipeline runs torch and BLAS code on the same cores, which
             spinning threads slow down (benchmarks/engine_cost.py measures both).
         scout: the int8 full graph only scouts candidate crops (query.scoring=scout);
-            every other pass runs float32. Needs an int8 mode.
+            every other pass runs float32. Needs a static int8 mode: dynamic
+            quantisation scales each batch by its own range, so a window's score would
+            depend on the candidates beside it.
     """
 
     threads: int | None = None
@@ -109,11 +111,12 @@ class EngineOptions:
         if self.int8 not in INT8_MODES:
             choices = ", ".join(INT8_MODES)
             raise ConfigError(f"onnx.int8 must be one of {choices}, got {self.int8!r}")
-        if self.scout and self.int8 == "none":
+        if self.scout and self.int8 not in STATIC_MODES:
+            given = "" if self.int8 == "none" else f", not onnx.int8={self.int8}"
             raise ConfigError(
-                "query.scoring=scout scores candidate crops with the int8 graph: set "
-                "onnx.int8 (static: 7-bit weights; docs/engine.md#int8), or use "
-                "query.scoring=plain"
+                "query.scoring=scout scores candidate crops with the static int8 graph, "
+                "whose scores do not depend on the windows beside them: set "
+                f"onnx.int8=static (or static_8bit){given}, or use query.scoring=plain"
             )
         if self.threads is not None and int(self.threads) < 1:
             raise ConfigError(f"onnx.threads must be >= 1 (null: every core), got {self.threads}")

@@ -164,7 +164,10 @@ def test_compare_of_the_dropout_variants(tmp_path, cache):
         (["train.log=wandb"], "expected one of [none, tensorboard]"),
         (["query.crop_samples=4", "train.crop_scale=1.0"], "the window fills the crop"),
         (["query.rerank=3"], "query.rerank=3 re-scores the best shared- or scout-scoring"),
-        (["query.scoring=scout"], "query.scoring=scout scores candidate crops with the int8"),
+        (
+            ["query.scoring=scout"],
+            "query.scoring=scout scores candidate crops with the static int8",
+        ),
         (
             ["query.scoring=scout", "engine=torch"],
             "query.scoring=scout scores candidate crops with onnxruntime's int8 graph, but "

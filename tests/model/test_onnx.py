@@ -383,25 +383,36 @@ def test_cli_localize_backend_is_read_as_engine_and_needs_no_export(trained_mode
 
 
 def test_cli_localize_with_an_int8_scout(trained_model, tmp_path):
-    """query.scoring=scout on a model file: the int8 graph is made beside it (dynamic:
-    no map images needed), the float32 graphs answer."""
+    """query.scoring=scout on a model file: the static int8 graph kept beside it (as
+    task=relocalize keeps it) scouts, the float32 graphs answer."""
+    from relocfw.core.imaging import read_rgb
+    from relocfw.model.model_file import load_model
+    from relocfw.model.onnx_engine import EngineOptions, onnx_engine
+
     home, model, images = trained_model
     lone = tmp_path / "model.relocfw"
     lone.write_bytes(model.read_bytes())
-    args = ["onnx.int8=dynamic", "query.scoring=scout", "query.rerank=2"]
+    args = ["onnx.int8=static", "query.scoring=scout", "query.rerank=2"]
+    # No map images at hand in task=localize: one message naming what to run.
+    missing = localize_run(trained_model, lone, tmp_path / "first", *args)
+    assert missing.returncode == 2
+    assert "onnx.int8=static calibrates on map images" in missing.stderr
+    calibration = [read_rgb(path) for path in sorted(images.glob("*.color.png"))]
+    options = EngineOptions(threads=1, int8="static", scout=True)
+    onnx_engine(load_model(lone, "cpu").backbone, lone, options, calibration)
     result = localize_run(trained_model, lone, tmp_path / "run", *args)
     assert result.returncode == 0, result.stderr
     assert np.all(np.isfinite(np.loadtxt(tmp_path / "run" / "poses.txt")))
     assert len(localization_rows(tmp_path / "run")) == 4
     assert sorted(p.name for p in tmp_path.glob("model.relocfw-*")) == [
-        "model.relocfw-full.int8-dynamic.onnx",
+        "model.relocfw-full.int8-static.onnx",
         "model.relocfw-full.onnx",
         "model.relocfw-maps.onnx",
     ]
     # Without onnx.int8 there is no scout: one message, nothing localized.
     refused = localize_run(trained_model, lone, tmp_path / "again", "query.scoring=scout")
     assert refused.returncode == 2
-    assert "query.scoring=scout scores candidate crops with the int8 graph" in refused.stderr
+    assert "query.scoring=scout scores candidate crops with the static int8" in refused.stderr
 
 
 @pytest.mark.parametrize(

@@ -637,57 +637,106 @@ def test_relocalize_keeps_static_graphs_beside_the_model_file(
     assert not list(tmp_path.glob("m2*"))
 
 
-def test_an_int8_scout_ranks_and_the_float32_graphs_answer(built, images, tmp_path, monkeypatch):
+class CountedImages:
+    """A session that counts the images it runs (which windows went through it)."""
+
+    def __init__(self, session) -> None:
+        self.session = session
+        self.images = 0
+
+    def run(self, names, feeds):
+        self.images += len(next(iter(feeds.values())))
+        return self.session.run(names, feeds)
+
+
+def scout_engine(built, images, folder: Path) -> tuple[Built, OnnxBackbone]:
     net = built("head")
-    owner = cached_copy(net, tmp_path)
+    owner = cached_copy(net, folder)
     options = EngineOptions(threads=1, int8="static", scout=True)
-    engine = onnx_engine(net.backbone, owner, options, images.map, say=pytest.fail)
+    return net, onnx_engine(net.backbone, owner, options, images.map, say=pytest.fail)
+
+
+def test_an_int8_scout_ranks_and_the_float32_graphs_answer(built, images, tmp_path, monkeypatch):
+    net, engine = scout_engine(built, images, tmp_path)
     assert engine.description.endswith("float32, int8 static scout, 1 threads")
     # Only the full graph is quantised: every other pass runs float32.
     assert [p.name for p in tmp_path.glob("*int8*")] == ["net.pt-full.int8-static.onnx"]
     torch_way = Relocalizer(net.backbone, KMeansIndex(k=3), GeneticCropSearch(seed=0))
     torch_way.fit(images.map)
     scouted = torch_way.replace(backbone=engine, options=QueryOptions(scoring="scout"))
-    counted = count_runs(engine, monkeypatch)
-    scout = CountedSession(engine.scout)
+    full = CountedImages(engine.sessions["full"])
+    scout = CountedImages(engine.scout)
+    monkeypatch.setitem(engine.sessions, "full", full)
     monkeypatch.setattr(engine, "scout", scout)
+    windows = 0
     for image in images.queries:
         answer = scouted.localize(image)
+        windows += answer.evaluations
         strip = torch_way.scorer.strip(image)
         window = strip.cut(strip.window(answer.crop))[None]
         exact = torch_way.scorer.forward(window)
         np.testing.assert_allclose(answer.pose.position, exact.positions[0], atol=TOLERANCE)
         np.testing.assert_allclose(answer.pose.quaternion, exact.quaternions[0], atol=TOLERANCE)
         # The scout is the int8 graph: its descriptors are not the float32 ones.
-        inputs = window.float() / 255
         with torch.inference_mode():
-            rounded = engine.scout_features(inputs).numpy()
+            rounded = engine.scout_features(window.float() / 255).numpy()
         assert np.abs(rounded - exact.features).max() > 1e-3
-    # The float32 full graph ran once per query (its chosen crop), the scout the rest.
-    assert counted["full"].runs == len(images.queries)
-    assert scout.runs >= len(images.queries)
+    # Every distinct window once through the scout (the 2 checks above included);
+    # the float32 graph ran once per query, on its chosen crop.
+    assert scout.images == windows + len(images.queries)
+    assert full.images == len(images.queries)
 
 
-def test_scout_scoring_needs_onnxruntimes_int8_graphs(built, images):
-    with pytest.raises(ConfigError, match="query.scoring=scout .* set onnx.int8"):
-        EngineOptions(scout=True)
+def test_an_int8_scouts_scores_do_not_depend_on_the_batch(built, images, tmp_path):
+    """Static int8 scales are fixed: a query's windows score as they would alone, so
+    queries searched together answer as one at a time (dynamic ones would not)."""
+    net, engine = scout_engine(built, images, tmp_path)
+    scouted = Relocalizer(
+        engine, KMeansIndex(k=3), GeneticCropSearch(seed=0), QueryOptions(scoring="scout")
+    )
+    scouted.fit(images.map)
+    queries = images.queries + images.map[:2]
+    alone = [scouted.localize(image) for image in queries]
+    together = scouted.localize_many(queries, queries_at_once=len(queries))
+    for got, want in zip(together, alone, strict=True):
+        assert_same_answer(got, want)
+
+
+def test_an_int8_engine_without_its_scout_is_refused_for_scout_scoring(built, images, tmp_path):
+    net = built("head")
+    owner = cached_copy(net, tmp_path)
+    throughout = onnx_engine(
+        net.backbone, owner, EngineOptions(threads=1, int8="static"), images.map
+    )
+    options = QueryOptions(scoring="scout")
+    with pytest.raises(ConfigError, match="scoring=scout: the engine's graphs are int8 static"):
+        Relocalizer(throughout, KMeansIndex(k=3), GeneticCropSearch(seed=0), options)
+
+
+def test_scout_scoring_needs_onnxruntimes_static_int8_graphs(built, images):
+    for int8 in ("none", "dynamic"):
+        with pytest.raises(ConfigError, match="query.scoring=scout .* set onnx.int8=static"):
+            EngineOptions(scout=True, int8=int8)
     refusals = [
         ("torch", "static", "cpu", "but the network runs on torch here"),
         ("auto", "static", "cuda", "but the network runs on torch here"),
         ("ncnn", "none", "cpu", "but the network runs on engine=ncnn here"),
-        ("auto", "none", "cpu", "query.scoring=scout scores candidate crops with the int8 graph"),
+        ("auto", "none", "cpu", "scores candidate crops with the static int8 graph"),
+        ("onnx", "dynamic", "cpu", "not onnx.int8=dynamic"),
     ]
     for engine, int8, device, message in refusals:
         with pytest.raises(ConfigError, match=message):
             wanted_engine(engine_config(engine, int8, scoring="scout"), torch.device(device))
     cfg = engine_config("auto", "static", scoring="scout")
     assert wanted_engine(cfg, torch.device("cpu")) == "onnx"
-    # A model file's scoring (task=localize) is checked against the engine options too.
+    # A model file's scoring (task=localize) is checked too, and said to be the file's.
     net = built("head")
     options = QueryOptions(scoring="scout")
     relocalizer = Relocalizer(net.backbone, ExhaustiveIndex(), CentreCrop(), options)
-    with pytest.raises(ConfigError, match="set onnx.int8"):
+    with pytest.raises(ConfigError, match=r"set onnx.int8=static.*is the model file's\)$"):
         on_engine(engine_config("auto"), relocalizer, net.owner, torch.device("cpu"))
+    with pytest.raises(ConfigError, match=r"runs on torch here.*is the model file's\)$"):
+        on_engine(engine_config("torch"), relocalizer, net.owner, torch.device("cpu"))
 
 
 @pytest.mark.parametrize(
