@@ -96,7 +96,13 @@ class OnnxBackbone(Backbone):
         array = np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
         session = self.sessions[kind]
         names = list(OUTPUT_NAMES) if kind == "full" else [MAPS_OUTPUT]
-        return session.run(names, {INPUT_NAME: array})
+        if self.int8 != "dynamic" or len(array) == 1:
+            return session.run(names, {INPUT_NAME: array})
+        # Dynamic quantisation scales each pass's activations by the whole batch's
+        # range: one image per pass keeps an image's answer its own, whatever the
+        # windows (or other queries) beside it.
+        parts = [session.run(names, {INPUT_NAME: array[i : i + 1]}) for i in range(len(array))]
+        return [np.concatenate(outputs) for outputs in zip(*parts, strict=True)]
 
     def forward(self, images: torch.Tensor) -> PoseOutput:
         if configured_samples(self.source) > 0:

@@ -506,6 +506,22 @@ def test_int8_dynamic_graphs_are_cached_and_answer(built, images, tmp_path, capl
         assert np.all(np.isfinite(answer.pose.quaternion))
 
 
+def test_int8_dynamic_answers_do_not_depend_on_the_batch(built, images, tmp_path):
+    """Dynamic quantisation scales a pass by its whole batch: the engine runs one image
+    per pass, so queries searched together answer as one at a time."""
+    net = built("head")
+    owner = cached_copy(net, tmp_path)
+    engine = onnx_engine(net.backbone, owner, EngineOptions(threads=1, int8="dynamic"))
+    relocalizer = Relocalizer(engine, KMeansIndex(k=3), GeneticCropSearch(seed=0))
+    relocalizer.fit(images.map)
+    queries = images.queries + images.map[:2]
+    alone = [relocalizer.localize(image) for image in queries]
+    together = relocalizer.localize_many(queries, queries_at_once=len(queries))
+    for got, want in zip(together, alone, strict=True):
+        assert got.crop == want.crop
+        np.testing.assert_array_equal(got.pose.position, want.pose.position)
+
+
 def test_int8_static_calibrates_on_map_images_once(built, images, tmp_path):
     net = built("head")
     owner = cached_copy(net, tmp_path)
