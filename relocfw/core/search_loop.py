@@ -14,11 +14,13 @@ A search that only defines the older `search(width, height, distance)` blocks in
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from relocfw.core.errors import RelocfwError
 from relocfw.core.interfaces import CropProposals, CropSearch
 from relocfw.core.query_windows import QueryWindows
+from relocfw.core.scorer import Scorer
 from relocfw.core.values import Crop
 
 
@@ -85,24 +87,44 @@ def score_round(queries: Sequence[QueryWindows], asked: dict[int, list]) -> None
 
 def score_plain_together(queries: Sequence[QueryWindows], wanted: dict[int, list]) -> None:
     """Plain windows of several queries, those not scored yet, in one merged pass."""
-    plain = {m: new for m, corners in wanted.items() if (new := queries[m].unscored(corners))}
-    if not plain:
-        return
-    scorer = queries[next(iter(plain))].scorer
-    scored = scorer.plain_together([(queries[m].strip, corners) for m, corners in plain.items()])
-    for (member, corners), answers in zip(plain.items(), scored, strict=True):
-        queries[member].keep_plain(corners, answers)
+    score_merged(
+        queries,
+        wanted,
+        QueryWindows.unscored,
+        lambda scorer, requests: scorer.plain_together(requests),
+        QueryWindows.keep_plain,
+    )
 
 
 def score_scout_together(queries: Sequence[QueryWindows], wanted: dict[int, list]) -> None:
     """Scout windows of several queries, those not scored yet, in one merged pass."""
-    new = {m: corners for m, c in wanted.items() if (corners := queries[m].unranked(c))}
+    score_merged(
+        queries,
+        wanted,
+        QueryWindows.unranked,
+        lambda scorer, requests: scorer.scout_together(requests),
+        QueryWindows.keep_ranking,
+    )
+
+
+def score_merged(
+    queries: Sequence[QueryWindows],
+    wanted: dict[int, list],
+    new_of: Callable[[QueryWindows, list], list],
+    score: Callable[[Scorer, list], list],
+    keep: Callable[[QueryWindows, list, Any], None],
+) -> None:
+    """The windows in `wanted` (query -> corners) that `new_of` says a query lacks,
+    scored by `score(scorer, requests)` in one merged call and split back to each query
+    by `keep`. `score` looks the method up on the scorer when it runs, so a wrapped
+    scorer method (a benchmark's timer, a test's recorder) is the one called."""
+    new = {m: corners for m, asked in wanted.items() if (corners := new_of(queries[m], asked))}
     if not new:
         return
     scorer = queries[next(iter(new))].scorer
-    scored = scorer.scout_together([(queries[m].strip, corners) for m, corners in new.items()])
-    for (member, corners), distances in zip(new.items(), scored, strict=True):
-        queries[member].keep_ranking(corners, distances)
+    scored = score(scorer, [(queries[m].strip, corners) for m, corners in new.items()])
+    for (member, corners), result in zip(new.items(), scored, strict=True):
+        keep(queries[member], corners, result)
 
 
 def checked(search: CropSearch, crop: object, query: QueryWindows) -> Crop:

@@ -60,6 +60,19 @@ def plain_answer(relocalizer: Relocalizer, image, crop):
     return relocalizer.scorer.forward(strip.cut(strip.window(crop))[None])
 
 
+def recorded_plain_batches(relocalizer: Relocalizer, monkeypatch) -> list[list]:
+    """The window corners of every plain batch the relocalizer's scorer runs from now."""
+    batches = []
+    plain = relocalizer.scorer.plain
+
+    def recording(strip, corners):
+        batches.append(list(corners))
+        return plain(strip, corners)
+
+    monkeypatch.setattr(relocalizer.scorer, "plain", recording)
+    return batches
+
+
 def test_without_a_cheaper_copy_the_scout_chooses_what_plain_scoring_does(scene):
     plain = fitted(tiny_posenet(), GeneticCropSearch(seed=0), scene)
     scout = fitted(tiny_posenet(), GeneticCropSearch(seed=0), scene, scoring="scout")
@@ -75,18 +88,11 @@ def test_without_a_cheaper_copy_the_scout_chooses_what_plain_scoring_does(scene)
 
 def test_the_scout_ranks_and_the_network_answers_the_chosen_crop(scene, monkeypatch):
     relocalizer = fitted(noisy_scout(), GeneticCropSearch(seed=0), scene, scoring="scout")
-    plain_windows = []
-    plain = relocalizer.scorer.plain
-
-    def recording(strip, corners):
-        plain_windows.extend(corners)
-        return plain(strip, corners)
-
-    monkeypatch.setattr(relocalizer.scorer, "plain", recording)
+    batches = recorded_plain_batches(relocalizer, monkeypatch)
     image = scene[1][0]
     answer = relocalizer.localize(image)
     strip = Strip(image, 32)
-    assert plain_windows == [strip.window(answer.crop)]  # the chosen crop alone
+    assert batches == [[strip.window(answer.crop)]]  # the chosen crop alone
     exact = plain_answer(relocalizer, image, answer.crop)
     np.testing.assert_allclose(answer.pose.position, exact.positions[0], atol=1e-6)
     np.testing.assert_allclose(answer.pose.quaternion, exact.quaternions[0], atol=1e-6)
@@ -113,14 +119,7 @@ def test_a_noisy_scout_moves_choices_and_re_scoring_every_window_undoes_it(scene
 
 def test_re_scoring_runs_the_best_scouted_windows_in_one_plain_batch(scene, monkeypatch):
     relocalizer = fitted(noisy_scout(), GeneticCropSearch(seed=0), scene, scoring="scout", rerank=3)
-    batches = []
-    plain = relocalizer.scorer.plain
-
-    def recording(strip, corners):
-        batches.append(list(corners))
-        return plain(strip, corners)
-
-    monkeypatch.setattr(relocalizer.scorer, "plain", recording)
+    batches = recorded_plain_batches(relocalizer, monkeypatch)
     image = scene[1][0]
     query_windows = []
     original = relocalizer.answer

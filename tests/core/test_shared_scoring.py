@@ -14,6 +14,7 @@ from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.kmeans_index import KMeansIndex
 from relocfw.plugins.posenet import PoseNet
 from relocfw.plugins.sweep_crop import SweepCrop
+from tests.core.test_scout_scoring import recorded_plain_batches
 
 
 def tiny_posenet() -> PoseNet:
@@ -226,14 +227,7 @@ def test_re_scoring_keeps_the_searchs_choice_among_the_candidates(scene, monkeyp
     options = QueryOptions(scoring="shared", rerank=3)
     relocalizer = Relocalizer(tiny_posenet(), KMeansIndex(k=4), search, options)
     relocalizer.fit(scene[0])
-    plain_batches = []
-    score = relocalizer.scorer.plain
-
-    def recording(strip, corners):
-        plain_batches.append(list(corners))
-        return score(strip, corners)
-
-    monkeypatch.setattr(relocalizer.scorer, "plain", recording)
+    plain_batches = recorded_plain_batches(relocalizer, monkeypatch)
     image = scene[1][0]
     answer = relocalizer.localize(image)
     strip = Strip(image, 32)
