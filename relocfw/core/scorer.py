@@ -13,7 +13,7 @@ benchmarks measure the very same path. The two ways to score a candidate window:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 import torch
@@ -78,15 +78,18 @@ class Scorer:
         dropout-free network whatever the backbone is configured to sample.
         """
         with monte_carlo(self.backbone, samples):
-            parts = [
-                self._forward_batch(inputs[start : start + self.batch_size])
-                for start in range(0, len(inputs), self.batch_size)
-            ]
+            parts = [self._forward_batch(batch) for batch in self._batches(inputs)]
         return NetworkAnswers(*(np.concatenate(column) for column in zip(*parts, strict=True)))
 
-    def _forward_batch(self, inputs: torch.Tensor) -> NetworkAnswers:
-        batch = to_network_input(inputs.to(self.device))
-        out = self.backbone(batch.contiguous(memory_format=self.memory_format))
+    def _batches(self, inputs: torch.Tensor) -> Iterator[torch.Tensor]:
+        """uint8 inputs [n, 3, s, s] as the network's inputs on the device, in the
+        backbone's memory format, `batch_size` at a time."""
+        for start in range(0, len(inputs), self.batch_size):
+            batch = to_network_input(inputs[start : start + self.batch_size].to(self.device))
+            yield batch.contiguous(memory_format=self.memory_format)
+
+    def _forward_batch(self, batch: torch.Tensor) -> NetworkAnswers:
+        out = self.backbone(batch)
         n = len(batch)
         return NetworkAnswers(
             as_numpy(out.positions, n),
@@ -149,17 +152,11 @@ class Scorer:
         A window's answer does not depend on its batch-mates, so each query gets what
         `plain` would give it alone.
         """
-        distances, answers = self.plain_of_windows(
-            torch.stack([strip.cut(c) for strip, corners in requests for c in corners])
-        )
-        split, start = [], 0
-        for _, corners in requests:
-            end = start + len(corners)
-            split.append(
-                (distances[start:end], NetworkAnswers(*(col[start:end] for col in answers)))
-            )
-            start = end
-        return split
+        distances, answers = self.plain_of_windows(merged_windows(requests))
+        return [
+            (distances[rows], NetworkAnswers(*(column[rows] for column in answers)))
+            for rows in request_rows(requests)
+        ]
 
     @torch.inference_mode()
     def scout_together(
@@ -167,17 +164,14 @@ class Scorer:
     ) -> list[np.ndarray]:
         """Map distances of several queries' windows by the backbone's scout
         (scoring=scout), `batch_size` windows per pass, split back per query."""
-        windows = torch.stack([strip.cut(c) for strip, corners in requests for c in corners])
-        parts = []
         # Dropout-free, as every scoring pass (a backbone may sample by default).
         with monte_carlo(self.backbone, 0):
-            for start in range(0, len(windows), self.batch_size):
-                batch = to_network_input(windows[start : start + self.batch_size].to(self.device))
-                batch = batch.contiguous(memory_format=self.memory_format)
-                parts.append(as_numpy(self.backbone.scout_features(batch), len(batch)))
-        distances = self.map_distance(np.concatenate(parts))
-        ends = np.cumsum([len(corners) for _, corners in requests])
-        return np.split(distances, ends[:-1])
+            features = [
+                as_numpy(self.backbone.scout_features(batch), len(batch))
+                for batch in self._batches(merged_windows(requests))
+            ]
+        distances = self.map_distance(np.concatenate(features))
+        return [distances[rows] for rows in request_rows(requests)]
 
     def plain_of_windows(self, windows: torch.Tensor) -> tuple[np.ndarray, NetworkAnswers]:
         """Map distances [n] and network answers of n uint8 windows [n, 3, s, s]."""
@@ -231,3 +225,14 @@ class Scorer:
         if self._sample_share is None:  # measured once, in a random stream of its own
             self._sample_share = sample_share(self.backbone, self.device)
         return windows * (1.0 + masks * self._sample_share)
+
+
+def merged_windows(requests: Sequence[tuple[Strip, Sequence[Corner]]]) -> torch.Tensor:
+    """uint8 [n, 3, s, s]: every request's windows, the requests in order."""
+    return torch.stack([strip.cut(c) for strip, corners in requests for c in corners])
+
+
+def request_rows(requests: Sequence[tuple[Strip, Sequence[Corner]]]) -> list[slice]:
+    """Each request's rows in `merged_windows(requests)`."""
+    ends = np.cumsum([len(corners) for _, corners in requests]).tolist()
+    return [slice(start, end) for start, end in zip([0, *ends[:-1]], ends, strict=True)]

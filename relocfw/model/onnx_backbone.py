@@ -93,7 +93,7 @@ class OnnxBackbone(Backbone):
         return self._sample_share
 
     def run(self, kind: str, images: torch.Tensor) -> list[np.ndarray]:
-        array = np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
+        array = graph_input(images)
         session = self.sessions[kind]
         names = list(OUTPUT_NAMES) if kind == "full" else [MAPS_OUTPUT]
         if self.int8 != "dynamic" or len(array) == 1:
@@ -130,8 +130,7 @@ class OnnxBackbone(Backbone):
     def scout_features(self, images: torch.Tensor) -> torch.Tensor:
         if self.scout is None:
             return super().scout_features(images)
-        array = np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
-        (features,) = self.scout.run(["features"], {INPUT_NAME: array})
+        (features,) = self.scout.run(["features"], {INPUT_NAME: graph_input(images)})
         return torch.from_numpy(features)
 
     def feature_maps(self, images: torch.Tensor) -> torch.Tensor:
@@ -145,6 +144,11 @@ class OnnxBackbone(Backbone):
     def describe_pooled(self, pooled: torch.Tensor) -> torch.Tensor:
         # One linear layer per candidate: torch, on the source's weights.
         return self.source.describe_pooled(pooled)
+
+
+def graph_input(images: torch.Tensor) -> np.ndarray:
+    """What the graphs take: float32 NCHW, contiguous, on the CPU."""
+    return np.ascontiguousarray(images.detach().cpu().numpy(), dtype=np.float32)
 
 
 def trained_network(backbone: Backbone) -> Backbone:
