@@ -6,12 +6,24 @@ each, lifted with the map image's depth (`structure=depth`) or triangulated betw
 map images with their known poses (`structure=triangulated`, for users without depth).
 Per query: retrieve `count` keyframes, by the chosen crop's descriptor (with crop=ga,
 the paper's idea applied to retrieval) or by the network's pose, match, solve. With
-fewer than `min_inliers` inliers it answers the network's pose, flagged as fallen back.
+fewer than `min_inliers` inliers it answers the network's pose, flagged as fallen back;
+so it does when the network's pose is not finite and keyframes are chosen by it (no
+keyframe is near a NaN pose: the refiner cannot do better than the network, which is
+the contract's fallback, and one broken query does not stop an evaluation).
+
+On a map that is not metric (refine.metric=false, set from dataset.metric: an
+unaligned COLMAP model), the triangulation's one length in metres, the 5 cm smallest
+baseline, is measured against the map instead: half the median distance between a
+map image and its nearest other map image (the bound's job is to skip partners
+standing almost where the image stands, and in a map of unknown scale "almost" can
+only be told from how far apart its images usually are). structure=depth is refused
+there: depth maps are in metres and cannot be lifted into poses that are not.
 """
 
 from __future__ import annotations
 
 import hashlib
+import inspect
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -26,14 +38,22 @@ from relocfw.core.standardise import ZScore, check_features, k_nearest
 from relocfw.structure import (
     MapView,
     StructureMap,
+    build_by_triangulation,
     cached_structure_map,
     keyframes_by_pose,
     localize_against,
     structure_key,
 )
+from relocfw.structure.structure_map import median_camera_spacing
 
 STRUCTURES = ("depth", "triangulated")
 KEYFRAMES = ("descriptor", "pose")
+# On a map that is not metric, the smallest triangulation baseline as a share of the
+# median distance between neighbouring map images (see the module's note).
+NON_METRIC_BASELINE_SHARE = 0.5
+NO_DEPTH_HINT = (
+    "use refine=features_rgb, which triangulates the map's points from its images and poses"
+)
 
 
 class FeaturesRefiner(PoseRefiner):
@@ -51,6 +71,8 @@ class FeaturesRefiner(PoseRefiner):
         min_inliers: fewest inliers for a pose; below, the network's pose stands.
         cache_dir: where the map's structure is cached by content (None: not cached).
         quiet: no progress bars.
+        metric: whether the map's poses are in metres (dataset.metric); False scales
+            the triangulation's metric bound to the map and refuses structure=depth.
     """
 
     def __init__(
@@ -64,6 +86,7 @@ class FeaturesRefiner(PoseRefiner):
         min_inliers: int = 12,
         cache_dir: str | Path | None = None,
         quiet: bool = False,
+        metric: bool = True,
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -82,21 +105,54 @@ class FeaturesRefiner(PoseRefiner):
         self.min_inliers = integer_at_least("refine.min_inliers", min_inliers, 4)
         self.cache_dir = None if cache_dir is None else Path(cache_dir).expanduser()
         self.quiet = bool(quiet)
+        if not isinstance(metric, bool):
+            raise ConfigError(f"refine.metric must be true or false, got {metric!r}")
+        self.metric = metric
+        if structure == "depth" and not metric:
+            raise ConfigError(
+                "refine=features lifts depth maps (metres) into the map's poses, which "
+                f"are not metric here (dataset.metric=false); {NO_DEPTH_HINT}"
+            )
 
     def settings(self, views: Sequence[MapImage]) -> dict:
         """What the map's structure depends on besides names, poses and cameras (its
-        cache key): the options, each image's pixels, and each depth file as it is
-        now (path, scale, size, modification time), so new or changed depth maps or
-        re-rendered images are never answered from an old cache."""
+        cache key): the builder and every parameter it is called with, each image's
+        pixels, and each depth file's scale and contents, so new or changed depth
+        maps, re-rendered images or other build parameters are never answered from an
+        old cache. (relocfw.structure.structure_key adds the OpenCV and relocfw
+        versions.)"""
         return {
             "structure": self.structure_source,
             "max_features": self.max_features,
+            "build": self.build_parameters(views),
             "images": [image_digest(v.image) for v in views],
             "depth": [depth_file_state(v) for v in views],
         }
 
+    def build_parameters(self, views: Sequence[MapImage]) -> dict:
+        """The keyword arguments the builder gets besides views, max_features and quiet:
+        none for structure=depth; for triangulated, every parameter of
+        build_by_triangulation at its default (so a changed default changes the cache
+        key), with the smallest baseline scaled to a map that is not metric."""
+        if self.structure_source == "depth":
+            return {}
+        parameters = {
+            name: parameter.default
+            for name, parameter in inspect.signature(build_by_triangulation).parameters.items()
+            if name not in ("views", "max_features", "quiet")
+        }
+        if not self.metric:
+            spacing = median_camera_spacing([view.pose for view in views])
+            parameters["min_baseline_m"] = NON_METRIC_BASELINE_SHARE * spacing
+        return parameters
+
     def check_map(self, frames: Sequence[object]) -> None:
         map_camera(frames)
+        if self.structure_source == "depth" and not any(has_depth_file(f) for f in frames):
+            raise ConfigError(
+                f"refine=features needs depth maps, and none of the {len(frames)} map "
+                f"images has one; {NO_DEPTH_HINT}"
+            )
 
     def fit(self, views: Sequence[MapImage], descriptors: np.ndarray, quiet: bool = True) -> None:
         quiet = quiet or self.quiet
@@ -116,18 +172,29 @@ class FeaturesRefiner(PoseRefiner):
             for view in views
         ]
 
+        parameters = self.build_parameters(views)
+
         def build() -> StructureMap:
             if self.structure_source == "depth":
                 return StructureMap.build_from_depth(map_views, self.max_features, quiet=quiet)
-            return StructureMap.build_by_triangulation(map_views, self.max_features, quiet=quiet)
+            return StructureMap.build_by_triangulation(
+                map_views, self.max_features, quiet=quiet, **parameters
+            )
 
         if self.cache_dir is None:
             self.structure = build()
-            return
-        key = structure_key(
-            [v.name for v in views], self.poses, [v.camera for v in views], self.settings(views)
-        )
-        self.structure = cached_structure_map(self.cache_dir, key, build, quiet)
+        else:
+            key = structure_key(
+                [v.name for v in views], self.poses, [v.camera for v in views], self.settings(views)
+            )
+            self.structure = cached_structure_map(self.cache_dir, key, build, quiet)
+        if self.structure_source == "depth" and not self.structure.point_counts().any():
+            # Every query would fall back: a configuration that cannot work.
+            raise ConfigError(
+                f"refine=features found no usable depth in any of the {len(views)} map "
+                f"images (first: {self.skipped_views[0].name}: "
+                f"{self.skipped_views[0].reason}); {NO_DEPTH_HINT}"
+            )
 
     @property
     def skipped_views(self) -> tuple:
@@ -153,6 +220,9 @@ class FeaturesRefiner(PoseRefiner):
                 "camera, so pass camera= to localize"
             )
         started = time.perf_counter()
+        if self.keyframes == "pose" and not finite_pose(query.network_pose):
+            # No map image is near a NaN pose; the network's answer stands, flagged.
+            return Refined(query.network_pose, 0.0, True, {"retrieval": 0.0})
         keyframes = self.keyframes_of(query)
         retrieval = time.perf_counter() - started
         answer = localize_against(
@@ -177,14 +247,30 @@ def image_digest(image: np.ndarray) -> str:
 
 
 def depth_file_state(view: MapImage) -> list:
-    """A depth file as the cache key sees it: path, scale, and size and modification
-    time when it exists."""
+    """A depth file as the cache key sees it: path, scale, and a hash of its bytes
+    when it exists (size and modification time miss a file copied over another with
+    its times kept)."""
     if view.depth_path is None:
         return [None]
     path = Path(view.depth_path)
-    stat = path.stat() if path.is_file() else None
-    state = [stat.st_size, stat.st_mtime_ns] if stat is not None else ["missing"]
-    return [str(path), view.depth_units_per_metre, *state]
+    state = file_digest(path) if path.is_file() else "missing"
+    return [str(path), view.depth_units_per_metre, state]
+
+
+def file_digest(path: Path) -> str:
+    """A short hash of a file's bytes (a 7-Scenes depth PNG: about 0.2 ms)."""
+    return hashlib.blake2b(path.read_bytes(), digest_size=8).hexdigest()
+
+
+def has_depth_file(frame: object) -> bool:
+    """Whether a map image (a Frame or MapImage) names a depth file that exists."""
+    path = getattr(frame, "depth_path", None)
+    return path is not None and Path(path).is_file()
+
+
+def finite_pose(pose: object) -> bool:
+    """Whether a Pose's position and quaternion are all finite numbers."""
+    return bool(np.isfinite(pose.position).all() and np.isfinite(pose.quaternion).all())
 
 
 def map_camera(views: Sequence[object]) -> PinholeCamera | None:

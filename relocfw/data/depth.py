@@ -17,6 +17,10 @@ from relocfw.data.frames import Frame
 NO_READING = (0, 65535)
 MILLIMETRES_PER_METRE = 1000.0
 TUM_UNITS_PER_METRE = 5000.0  # TUM RGB-D's depth PNGs: 5000 units per metre
+# Where the median valid depth of a real scene's depth map lies, in metres: far
+# wider than any RGB-D sensor reads (Kinect: about 0.4-8 m), so only a wrong scale
+# (a factor of 1000 or so) falls outside.
+PLAUSIBLE_MEDIAN_DEPTH_M = (0.05, 100.0)
 
 COLOUR_NAME = re.compile(r"^(?P<stem>.+)\.color\.(?:png|jpg|jpeg)$", re.IGNORECASE)
 
@@ -84,6 +88,44 @@ def read_depth(
     depth = raw.astype(np.float32) / np.float32(scale)
     depth[np.isin(raw, NO_READING)] = np.nan
     return depth
+
+
+def check_depth_range(
+    depth: np.ndarray, path: str | Path, units_per_metre: float = MILLIMETRES_PER_METRE
+) -> None:
+    """A DataError naming `path` when its depth, in metres, is not of a real scene.
+
+    A depth map read with the wrong scale (millimetres taken as metres, TUM's 1/5000 m
+    as millimetres off by far more) gives points that are silently wrong by that
+    factor. The median of the valid readings must lie in PLAUSIBLE_MEDIAN_DEPTH_M,
+    far wider than any RGB-D sensor's range, so only a wrong scale trips it.
+
+    Args:
+        depth: [H, W] depth in metres as read_depth gives it (NaN: no reading).
+        path: the file it was read from (named in the error).
+        units_per_metre: the scale it was read with (named in the error).
+
+    Raises:
+        DataError: naming the file, the median depth and the scale.
+    """
+    values = np.asarray(depth, dtype=np.float64)
+    valid = values[np.isfinite(values) & (values > 0)]
+    if valid.size == 0:
+        return  # no reading at all: the builders report that view as skipped
+    median = float(np.median(valid))
+    low, high = PLAUSIBLE_MEDIAN_DEPTH_M
+    if low <= median <= high:
+        return
+    hint = (
+        "are these millimetres read as metres?"
+        if median > high
+        else "is depth_units_per_metre too large?"
+    )
+    raise DataError(
+        f"{path}: median depth {median:.3g} m at depth_units_per_metre={units_per_metre:g}, "
+        f"outside {low:g}-{high:g} m: the depth scale looks wrong ({hint} 7-Scenes "
+        "stores millimetres: 1000, TUM RGB-D 5000)"
+    )
 
 
 def positive_scale(units_per_metre: object) -> float:

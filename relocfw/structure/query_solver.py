@@ -226,7 +226,7 @@ def keyframes_by_pose(
 
     Raises:
         ConfigError: naming `count` or `max_angle_deg` when out of range.
-        DataError: when `pose` is not a Pose or the poses are not Poses.
+        DataError: when `pose` is not a finite Pose or the poses are not Poses.
     """
     count = integer_at_least("count", count, 1)
     try:
@@ -237,6 +237,9 @@ def keyframes_by_pose(
         raise ConfigError(f"max_angle_deg must be in [0, 180] degrees, got {max_angle_deg!r}")
     if not isinstance(pose, Pose):
         raise DataError(f"pose must be a Pose, got {type(pose).__name__}")
+    if not (np.isfinite(pose.position).all() and np.isfinite(pose.quaternion).all()):
+        # NaN distances would all sort last and pick images 0..count-1 as if chosen.
+        raise DataError("pose holds NaN or infinity: no map image is near it")
     poses = (
         structure_or_poses.poses
         if isinstance(structure_or_poses, StructureMap)

@@ -35,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from relocfw.core.atomic_files import atomic_write, remove_stale_temporaries
@@ -44,7 +45,8 @@ from relocfw.core.geometry import quaternion_to_matrix
 from relocfw.core.options import integer_at_least
 from relocfw.core.progress import Progress
 from relocfw.core.values import Pose
-from relocfw.data.depth import read_depth
+from relocfw.core.version import VERSION
+from relocfw.data.depth import check_depth_range, read_depth
 from relocfw.structure.features import SIFT_DIMENSIONS, LocalFeatures, extract_rootsift
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
@@ -274,7 +276,7 @@ class StructureMap:
         """`build_by_triangulation` of this module (same arguments)."""
         return build_by_triangulation(*args, **kwargs)
 
-    def save(self, path: str | Path) -> None:
+    def save(self, path: str | Path, key: str | None = None) -> None:
         """Write the map to one compressed npz file, all or nothing.
 
         Descriptors are stored as uint8 (round(255 x value)): exact for maps the
@@ -283,6 +285,9 @@ class StructureMap:
         Args:
             path: the file to write (its folder is created); an existing file is
                 replaced only when the new one is complete.
+            key: the content key (`structure_key`) the map was built for, recorded in
+                the file so `cached_structure_map` can tell a stale or copied file
+                under that key's name; None records none.
 
         Raises:
             DataError: when a descriptor lies outside [0, 1] (not RootSIFT).
@@ -311,6 +316,8 @@ class StructureMap:
             "skipped_names": np.array([s.name for s in self.skipped_views], dtype=str),
             "skipped_reasons": np.array([s.reason for s in self.skipped_views], dtype=str),
         }
+        if key is not None:
+            arrays["key"] = np.array(str(key))
         with atomic_write(Path(path), "wb") as stream:
             np.savez_compressed(stream, **arrays)
 
@@ -329,29 +336,47 @@ class StructureMap:
                 relocfw structure map, of another format version, or inconsistent.
         """
         path = Path(path)
-        if not path.is_file():
-            raise DataError(f"structure map not found: {path}")
-        try:
-            # allow_pickle=False: a map file can never run code when it is read.
-            archive = np.load(path, allow_pickle=False)
-        except Exception as error:  # zipfile, zlib and numpy raise many types
-            raise DataError(
-                f"cannot read structure map {path} (truncated or corrupt: {error})"
-            ) from error
-        if not hasattr(archive, "files"):
-            raise DataError(f"{path} is not a relocfw structure map (an .npy array, not npz)")
-        try:
-            with archive:
-                arrays = {name: archive[name] for name in archive.files}
-        except Exception as error:  # a damaged member shows only when it is read
-            raise DataError(
-                f"cannot read structure map {path} (truncated or corrupt: {error})"
-            ) from error
-        try:
-            return map_of_arrays(arrays)
-        except (DataError, ConfigError, KeyError, ValueError, TypeError) as error:
-            detail = f"missing array {error}" if isinstance(error, KeyError) else str(error)
-            raise DataError(f"{path} is not a usable relocfw structure map: {detail}") from None
+        return map_of_file_arrays(path, read_map_arrays(path))
+
+
+def read_map_arrays(path: Path) -> dict[str, np.ndarray]:
+    """Every array of the npz file `path`, read in full; a DataError naming the file
+    when it is missing, truncated, corrupt or not an npz file."""
+    if not path.is_file():
+        raise DataError(f"structure map not found: {path}")
+    try:
+        # allow_pickle=False: a map file can never run code when it is read.
+        archive = np.load(path, allow_pickle=False)
+    except Exception as error:  # zipfile, zlib and numpy raise many types
+        raise DataError(
+            f"cannot read structure map {path} (truncated or corrupt: {error})"
+        ) from error
+    if not hasattr(archive, "files"):
+        raise DataError(f"{path} is not a relocfw structure map (an .npy array, not npz)")
+    try:
+        with archive:
+            arrays = {name: archive[name] for name in archive.files}
+    except Exception as error:  # a damaged member shows only when it is read
+        raise DataError(
+            f"cannot read structure map {path} (truncated or corrupt: {error})"
+        ) from error
+    return arrays
+
+
+def map_of_file_arrays(path: Path, arrays: dict[str, np.ndarray]) -> StructureMap:
+    """`map_of_arrays`, with any fault a DataError naming the file `path`."""
+    try:
+        return map_of_arrays(arrays)
+    except (DataError, ConfigError, KeyError, ValueError, TypeError) as error:
+        detail = f"missing array {error}" if isinstance(error, KeyError) else str(error)
+        raise DataError(f"{path} is not a usable relocfw structure map: {detail}") from None
+
+
+def recorded_key(arrays: dict[str, np.ndarray]) -> str | None:
+    """The content key a map file records (`StructureMap.save`), None when it has none
+    (written before files recorded their key)."""
+    key = arrays.get("key")
+    return str(key) if key is not None and key.shape == () else None
 
 
 def map_of_arrays(arrays: dict[str, np.ndarray]) -> StructureMap:
@@ -436,8 +461,9 @@ def depth_of_view(view: MapView) -> tuple[np.ndarray | None, str]:
 
     Missing, unreadable and corrupt files are a reason to skip the view (one bad
     frame of a recording should not stop a map of thousands); a depth map whose
-    aspect ratio differs from the image's is a DataError, since it cannot cover the
-    image's field of view and every view of the map would be lifted wrongly.
+    aspect ratio differs from the image's, or whose median depth is implausible in
+    metres (relocfw.data.depth.check_depth_range: a wrong depth_units_per_metre), is
+    a DataError, since every view of the map would be lifted wrongly.
     """
     if view.depth_path is None:
         return None, "no depth map (depth_path is None)"
@@ -445,6 +471,8 @@ def depth_of_view(view: MapView) -> tuple[np.ndarray | None, str]:
         depth = read_depth(view.depth_path, None, view.depth_units_per_metre)
     except DataError as error:
         return None, str(error)
+    # Raised, not skipped: a wrong scale is the dataset's, and every view has it.
+    check_depth_range(depth, view.depth_path, view.depth_units_per_metre)
     depth_height, depth_width = depth.shape
     # The depth map's height if it were scaled to the image's width.
     scaled_height = depth_height * view.camera.width / depth_width
@@ -487,7 +515,8 @@ def build_from_depth(
 
     Raises:
         DataError: naming the view when an entry is not a MapView or its pose is not
-            finite; naming the depth file when its aspect ratio is not the image's.
+            finite; naming the depth file when its aspect ratio is not the image's
+            or its median depth is implausible in metres (a wrong depth scale).
         ConfigError: when `max_features` is not an integer >= 1.
     """
     checked_views(views)
@@ -581,6 +610,29 @@ def triangulation_partners(
         order = np.argsort(distances[candidates], kind="stable")[:partners]
         chosen.append(candidates[order].tolist())
     return chosen
+
+
+def median_camera_spacing(poses: Sequence[Pose]) -> float:
+    """The median distance from a map image's camera to its nearest other camera: the
+    map's own length scale, for a map whose unit is not the metre.
+
+    Args:
+        poses: M camera-to-world poses.
+
+    Returns:
+        The median over images of the distance to the nearest other position (0.0
+        when fewer than two images, or all stand in one place).
+    """
+    positions = positions_of(poses)
+    if len(positions) < 2:
+        return 0.0
+    nearest = np.empty(len(positions))
+    # One row at a time, as triangulation_partners: O(M) memory.
+    for i in range(len(positions)):
+        distances = np.linalg.norm(positions - positions[i], axis=1)
+        distances[i] = np.inf
+        nearest[i] = distances.min()
+    return float(np.median(nearest))
 
 
 def median_of_candidates(candidates: np.ndarray) -> np.ndarray:
@@ -724,9 +776,10 @@ def structure_key(
     """A content key of a structure map: what makes it, hashed.
 
     The names, every pose and camera value (exact floats) and the builder's
-    settings (which builder, max_features, ...) with FORMAT_VERSION go into one
-    sha256. The image pixels and depth files are not read: a dataset that changes
-    its images under the same names must say so in `settings` (e.g. a version).
+    settings (which builder and every parameter of its build) go into one sha256,
+    with FORMAT_VERSION and the versions of OpenCV (its SIFT makes the features) and
+    relocfw (its builders make the points). The image pixels and depth files are not
+    read here: the caller puts their digests in `settings` (FeaturesRefiner does).
 
     Args:
         names: the M map images' names.
@@ -756,6 +809,8 @@ def structure_key(
         "poses": [[*p.position.tolist(), *p.quaternion.tolist()] for p in poses],
         "cameras": [[c.fx, c.fy, c.cx, c.cy, c.width, c.height] for c in cameras],
         "settings": settings,
+        "opencv": cv2.__version__,
+        "relocfw": VERSION,
     }
     text = json.dumps(payload, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -775,6 +830,10 @@ def cached_structure_map(
     Returns:
         The StructureMap (the one just built, which equals what was saved).
 
+    The file records its key (`StructureMap.save`); a file under the key's name
+    that records another key or none (copied, or written by older code) is not
+    used: the map is rebuilt over it, with one note line on stderr.
+
     Raises:
         ConfigError: when `key` is not 8-64 lowercase hex digits (it names a file).
         DataError: naming the cached file when it cannot be read (delete it to
@@ -785,18 +844,28 @@ def cached_structure_map(
     path = Path(cache_dir).expanduser() / "structure" / f"{key}.npz"
     if path.is_file():
         try:
-            structure = StructureMap.load(path)
+            arrays = read_map_arrays(path)
+            stored = recorded_key(arrays)
+            structure = map_of_file_arrays(path, arrays) if stored == key else None
         except DataError as error:
             raise DataError(f"{error}; delete it to rebuild the map") from None
-        if not quiet:
-            print(f"map structure: reused {path}", file=sys.stderr)
-        return structure
+        if structure is not None:
+            if not quiet:
+                print(f"map structure: reused {path}", file=sys.stderr)
+            return structure
+        # Printed even when quiet: a cache file that is not what its name says is
+        # worth one line.
+        print(
+            f"note: map structure {path} records key {stored or 'none'}, not {key}: rebuilding it",
+            file=sys.stderr,
+        )
     structure = build()
     if not isinstance(structure, StructureMap):
         raise DataError(f"build must return a StructureMap, got {type(structure).__name__}")
-    # A writer killed mid-file leaves a temporary; no other writer of this key runs.
+    # A writer killed mid-file leaves a temporary; another run's live temporary is
+    # locked and kept (relocfw.core.atomic_files).
     remove_stale_temporaries(path)
-    structure.save(path)
+    structure.save(path, key)
     if not quiet:
         print(f"map structure: built and saved {path}", file=sys.stderr)
     return structure

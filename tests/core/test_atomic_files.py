@@ -1,6 +1,9 @@
 """Files written all or nothing (relocfw.core.atomic_files), still importable from
 their first path, relocfw.model.checkpoints."""
 
+import os
+import time
+
 import pytest
 
 from relocfw.core import atomic_files
@@ -24,6 +27,9 @@ def test_a_killed_writers_temporaries_are_removed_and_nothing_else(tmp_path):
         stream.write(b"whole")
     (tmp_path / ".model.pt.x1y2").write_bytes(b"half")
     (tmp_path / ".other.pt.x1y2").write_bytes(b"someone else's")
+    # Older than any grace age a live writer's temporary is given; no lock on them.
+    for stale in tmp_path.glob(".*"):
+        os.utime(stale, (time.time() - 3 * 86400,) * 2)
     remove_stale_temporaries(path)
     assert sorted(p.name for p in tmp_path.iterdir()) == [".other.pt.x1y2", "model.pt"]
 
