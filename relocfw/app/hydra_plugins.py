@@ -12,15 +12,22 @@ from relocfw.app.plugin_discovery import (
     conflicts,
     describe_options,
     discover_options,
+    package_folder,
 )
 
 
 class RelocfwPluginSearchPath(SearchPathPlugin):
-    """Appends `pkg://<package>` for each `relocfw.configs` entry point."""
+    """Appends each `relocfw.configs` entry point's config folder as `file://`.
+
+    Not `pkg://<package>`: Hydra imports a pkg:// package (running the plugin's
+    __init__), so one plugin that raises on import would break every run.
+    """
 
     def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
         for source in config_sources()[1:]:
-            search_path.append(provider=source.distribution, path=f"pkg://{source.package}")
+            folder = package_folder(source.package)
+            if folder is not None:
+                search_path.append(provider=source.distribution, path=f"file://{folder}")
 
 
 def options_help() -> str:

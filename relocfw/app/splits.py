@@ -24,8 +24,18 @@ def load_split(dataset: Dataset, split: str, quiet: bool) -> tuple[list[Frame], 
     on_error = getattr(dataset, "on_error", None) or OnError()
     frames, images = read_good_images(frames, on_error, f"loading {split} images", quiet)
     if not frames:
-        raise DataError(f"the {split} split is empty")
+        raise DataError(empty_split_message(dataset, split, on_error))
     return frames, images
+
+
+def empty_split_message(dataset: Dataset, split: str, on_error: OnError) -> str:
+    """Names what lists the split (the dataset's `split_source`, where it has one) and
+    how many entries on_error=skip left out, so an empty split can be traced."""
+    describe = getattr(dataset, "split_source", None)
+    named = f"{describe(split)}: " if describe is not None else ""
+    skipped = len(on_error.skipped)
+    left_out = f" ({skipped} bad entries skipped so far, dataset.on_error=skip)" if skipped else ""
+    return f"{named}the {split} split is empty{left_out}"
 
 
 def write_skipped(dataset: Dataset, run_dir: Path) -> None:

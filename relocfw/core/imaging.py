@@ -14,23 +14,86 @@ from relocfw.core.errors import DataError
 from relocfw.core.interfaces import crop_at, crop_side_and_span
 from relocfw.core.values import Crop
 
+# The largest image read_rgb decodes: 2^26 pixels (8192 x 8192), 192 MiB as RGB. A
+# header may announce any size (70000 x 70000 takes 14 GiB to decode), and OpenCV's
+# own limit (2^30) fails with a cv2.error that names no file.
+MAX_IMAGE_PIXELS = 2**26
+
 
 def read_rgb(path: Path) -> np.ndarray:
     """RGB uint8 image (H x W x 3); grey images are expanded to three channels.
 
     Raises:
-        DataError: naming the file, when it is missing or cannot be decoded.
+        DataError: naming the file, when it is missing or cannot be decoded, when its
+            header announces more than MAX_IMAGE_PIXELS pixels, or when it is a
+            16-bit single-channel PNG or TIFF (a depth map, not a colour image).
     """
     path = Path(path)
     if not path.is_file():
         raise DataError(f"image not found: {path}")
     data = np.fromfile(path, dtype=np.uint8)
+    check_announced_size(data, path)
     if is_16_bit_grey_png(data):
         raise DataError(f"{path} is a 16-bit single-channel PNG (a depth map?), not a colour image")
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    try:
+        if is_single_channel_deep_tiff(data):
+            raise DataError(
+                f"{path} is a 16-bit or float single-channel TIFF (a depth map?), "
+                "not a colour image"
+            )
+        image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    except cv2.error as error:  # e.g. a size past OpenCV's limit in a format not parsed here
+        message = str(error).strip().splitlines()[-1]
+        raise DataError(f"cannot decode image {path}: {message}") from error
     if image is None:
         raise DataError(f"cannot decode image (corrupt or not an image): {path}")
     return np.ascontiguousarray(image[:, :, ::-1])
+
+
+def check_announced_size(data: np.ndarray, path: Path) -> None:
+    """Refuse, before decoding, an image whose header announces more than
+    MAX_IMAGE_PIXELS pixels (PNG and JPEG headers are read; others are not)."""
+    size = announced_size(data)
+    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
+        raise DataError(
+            f"{path}: its header announces {size[0]} x {size[1]} pixels, more than the "
+            f"{MAX_IMAGE_PIXELS} relocfw decodes (a corrupt header, or scale the image down)"
+        )
+
+
+def announced_size(data: np.ndarray) -> tuple[int, int] | None:
+    """(width, height) that a PNG or JPEG header announces; None for other or short data."""
+    head = data[:26].tobytes()
+    if head[:8] == PNG_SIGNATURE and len(head) >= 24:
+        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    if head[:2] == b"\xff\xd8":
+        return jpeg_size(data.tobytes())
+    return None
+
+
+# JPEG start-of-frame markers (C0-CF less C4 DHT, C8 JPG, CC DAC) hold the frame size.
+JPEG_FRAME_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+
+
+def jpeg_size(data: bytes) -> tuple[int, int] | None:
+    """(width, height) of a JPEG's first frame header, walking its marker segments."""
+    offset = 2
+    while offset + 9 <= len(data):
+        if data[offset] != 0xFF:
+            return None
+        marker = data[offset + 1]
+        if marker == 0xFF:  # fill byte before a marker
+            offset += 1
+            continue
+        if marker in JPEG_FRAME_MARKERS:
+            height = int.from_bytes(data[offset + 5 : offset + 7], "big")
+            width = int.from_bytes(data[offset + 7 : offset + 9], "big")
+            return width, height
+        if marker == 0xD8 or 0xD0 <= marker <= 0xD7:  # markers without a length
+            offset += 2
+            continue
+        offset += 2 + int.from_bytes(data[offset + 2 : offset + 4], "big")
+    return None
 
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -43,6 +106,21 @@ def is_16_bit_grey_png(data: np.ndarray) -> bool:
     if data.size < 26 or data[:8].tobytes() != PNG_SIGNATURE:
         return False
     return int(data[24]) == 16 and int(data[25]) in (0, 4)  # grey, grey + alpha
+
+
+TIFF_SIGNATURES = (b"II*\x00", b"MM\x00*")
+
+
+def is_single_channel_deep_tiff(data: np.ndarray) -> bool:
+    """Whether TIFF bytes hold a single-channel 16-bit or float image: how depth maps
+    are often stored as TIFF. Decoded as colour it would become a nonsense image; the
+    TIFF is decoded unchanged to tell (TIFF headers are not parsed here)."""
+    if data.size < 4 or data[:4].tobytes() not in TIFF_SIGNATURES:
+        return False
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        return False
+    return image.ndim == 2 and image.dtype in (np.uint16, np.float32, np.float64)
 
 
 def conversion_hint(dtype: np.dtype) -> str:

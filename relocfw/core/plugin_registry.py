@@ -43,16 +43,30 @@ def config_sources() -> list[ConfigSource]:
 
 
 def package_folder(package: str) -> Path | None:
-    """Where a package's files are, found without running its __init__."""
+    """Where a package's files are, found without running any of its code.
+
+    Only the top-level name is looked up: `find_spec("pkg.conf")` would import `pkg`
+    (running its __init__, which may raise or be slow), while `find_spec("pkg")` only
+    locates it. The rest of the dotted name is then a subfolder of one of its
+    locations (a namespace package may have several).
+    """
+    if package == BUILTIN_PACKAGE:
+        try:
+            return Path(str(files(package)))
+        except ModuleNotFoundError:
+            return None
+    top, *inner = package.split(".")
     try:
-        spec = importlib.util.find_spec(package)
+        spec = importlib.util.find_spec(top)
     except (ImportError, ValueError):
         return None
     if spec is None or not spec.submodule_search_locations:
         return None
-    if package == BUILTIN_PACKAGE:
-        return Path(str(files(package)))
-    return Path(next(iter(spec.submodule_search_locations)))
+    for location in spec.submodule_search_locations:
+        folder = Path(location).joinpath(*inner)
+        if folder.is_dir():
+            return folder
+    return None
 
 
 def group_files(group: str) -> list[tuple[ConfigSource, Path]]:

@@ -12,7 +12,7 @@ from pathlib import Path
 from relocfw.core.errors import DataError
 from relocfw.core.geometry import checked_quaternion, conjugate
 from relocfw.core.values import Pose
-from relocfw.data.frames import Frame
+from relocfw.data.frames import Frame, claim_frame_name
 from relocfw.data.on_error import OnError
 from relocfw.data.sevenscenes import scene_folder
 from relocfw.data.text import data_lines, numbers
@@ -30,6 +30,7 @@ def cambridge_pose(values: list[float], source: str) -> Pose:
 def load_cambridge(folder: Path, split: str, on_error: OnError | None = None) -> list[Frame]:
     on_error = on_error or OnError()
     frames = []
+    claimed: dict[str, Path] = {}
     for source, fields in data_lines(folder / SPLIT_FILES[split], skip=HEADER_LINES):
         try:
             if len(fields) != 8:
@@ -37,11 +38,13 @@ def load_cambridge(folder: Path, split: str, on_error: OnError | None = None) ->
                     f"{source}: expected 'path x y z w p q r', found {len(fields)} values"
                 )
             pose = cambridge_pose(numbers(fields[1:], source, 7), source)
+            image = fields[0]
+            name = str(Path(image).with_suffix(""))
+            claim_frame_name(claimed, name, folder / image, source)
         except DataError as error:
             on_error.handle(error)
             continue
-        name = fields[0]
-        frames.append(Frame(str(Path(name).with_suffix("")), folder / name, pose))
+        frames.append(Frame(name, folder / image, pose))
     return frames
 
 
@@ -60,3 +63,7 @@ class CambridgeLandmarks:
 
     def frames(self, split: str) -> list[Frame]:
         return load_cambridge(self.folder, split, self.on_error)
+
+    def split_source(self, split: str) -> str:
+        """What lists the split's frames, for messages: its dataset_*.txt file."""
+        return str(self.folder / SPLIT_FILES[split])

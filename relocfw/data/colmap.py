@@ -333,6 +333,10 @@ class ColmapDataset:
             raise ConfigError(f"split must be 'train' or 'test', got {split!r}")
         return list(self._frames[split])
 
+    def split_source(self, split: str) -> str:
+        """What lists the split's frames, for messages: the model's images file."""
+        return f"dataset.{split} of {self.model_file}"
+
     def camera(self, name: str) -> ColmapCamera:
         """The camera (intrinsics) image `name` (a Frame's name) was taken with."""
         if name not in self._camera_ids:

@@ -18,7 +18,7 @@ from pathlib import Path
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import checked_quaternion
 from relocfw.core.values import Pose
-from relocfw.data.frames import Frame
+from relocfw.data.frames import Frame, claim_frame_name
 from relocfw.data.on_error import OnError
 from relocfw.data.text import data_lines, numbers
 
@@ -51,28 +51,44 @@ def column_positions(header: list[str], source: str) -> dict[str, int]:
 
 def load_pose_table(path: Path, folder: Path, on_error: OnError | None = None) -> list[Frame]:
     on_error = on_error or OnError()
-    lines = data_lines(path)
+    # Split at commas only in a CSV: an image path may hold spaces.
+    lines = data_lines(path, comma_fields=True)
     try:
         header_source, header = next(lines)
     except StopIteration:
         raise DataError(f"{path}: empty poses file") from None
     columns = column_positions(header, header_source)
     frames = []
+    claimed: dict[str, Path] = {}
     for source, fields in lines:
         try:
             if len(fields) != len(header):
                 raise DataError(
                     f"{source}: {len(fields)} values, the header names {len(header)} columns"
+                    + space_hint(fields, header)
                 )
             picked = [fields[columns[c]] for c in ("x", "y", "z", "qw", "qx", "qy", "qz")]
             values = numbers(picked, source, 7)
             pose = Pose(values[:3], checked_quaternion(values[3:], source))
+            image = fields[columns["image"]]
+            name = str(Path(image).with_suffix(""))
+            claim_frame_name(claimed, name, folder / image, source)
         except DataError as error:
             on_error.handle(error)
             continue
-        image = fields[columns["image"]]
-        frames.append(Frame(str(Path(image).with_suffix("")), folder / image, pose))
+        frames.append(Frame(name, folder / image, pose))
     return frames
+
+
+def space_hint(fields: list[str], header: list[str]) -> str:
+    """Why a line may have more values than columns: a space in an image path of a
+    whitespace-separated file ("" where the count is not too high)."""
+    if len(fields) <= len(header):
+        return ""
+    return (
+        " (an image path with a space? in a whitespace-separated file a space splits "
+        'the path; use a CSV file with commas, quoting the path if needed: "a b.png",1,...)'
+    )
 
 
 class PoseFolder:
@@ -102,3 +118,7 @@ class PoseFolder:
 
     def frames(self, split: str) -> list[Frame]:
         return load_pose_table(self.root / self.files[split], self.root, self.on_error)
+
+    def split_source(self, split: str) -> str:
+        """What lists the split's frames, for messages: its poses file."""
+        return str(self.root / self.files[split])

@@ -49,6 +49,24 @@ class Frame:
     depth_units_per_metre: float = 1000.0
 
 
+def claim_frame_name(claimed: dict[str, Path], name: str, image: Path, source: str) -> None:
+    """Record that `image` is frame `name`; refuse a second image with the same name.
+
+    Frame names drop the extension, so `a.png` and `a.jpg` in one folder would become
+    one frame name, and every later step (the map, the answers, the summaries) would
+    silently hold one of them twice or mix them up.
+
+    Raises:
+        DataError: naming both files, where another image already has the name.
+    """
+    other = claimed.setdefault(name, image)
+    if other != image:
+        raise DataError(
+            f"{source}: {image} and {other} would both be frame {name!r} (a frame is "
+            "named by its path without the extension); rename or remove one of them"
+        )
+
+
 def positions_of(frames: Sequence[Frame]) -> np.ndarray:
     return np.stack([f.pose.position for f in frames])
 

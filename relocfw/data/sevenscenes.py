@@ -48,12 +48,24 @@ def scene_folder(root: str | Path, scene: str | None) -> Path:
     return folder
 
 
+def split_text(path: Path) -> str:
+    """A split file's text; a byte that is not UTF-8 is a DataError naming the file
+    and the byte's position (the file is likely damaged or not a split file)."""
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise DataError(
+            f"{path}: not a text split file (byte {error.object[error.start]:#04x} at "
+            f"offset {error.start} is not UTF-8)"
+        ) from error
+
+
 def read_split(path: Path) -> list[int]:
     """Sequence numbers listed in a TrainSplit.txt / TestSplit.txt file."""
     if not path.is_file():
         raise DataError(f"split file not found: {path}")
     numbers = []
-    for number, line in enumerate(path.read_text().splitlines(), start=1):
+    for number, line in enumerate(split_text(path).splitlines(), start=1):
         text = line.strip()
         if not text:
             continue
@@ -71,8 +83,8 @@ def read_pose_file(path: Path) -> np.ndarray:
     if not path.is_file():
         raise DataError(f"pose file not found: {path}")
     try:
-        values = [float(v) for v in path.read_text().split()]
-    except ValueError as error:
+        values = [float(v) for v in path.read_text(encoding="utf-8").split()]
+    except ValueError as error:  # UnicodeDecodeError included: it is a ValueError
         raise DataError(f"{path}: not a pose file ({error})") from error
     if len(values) != 16:
         raise DataError(f"{path}: expected 16 numbers (a 4x4 matrix), found {len(values)}")
@@ -219,6 +231,13 @@ class SevenScenes:
 
     def frames(self, split: str) -> list[Frame]:
         return load_sevenscenes(self.folder, None, split, self.on_error, self.sequences.get(split))
+
+    def split_source(self, split: str) -> str:
+        """What lists the split's frames, for messages: the option or the split file."""
+        chosen = self.sequences.get(split)
+        if chosen is not None:
+            return f"dataset.{split}_sequences={chosen} in {self.folder}"
+        return str(self.folder / SPLIT_FILES[split])
 
 
 def checked_sequences(key: str, values: Sequence[int] | None) -> list[int] | None:

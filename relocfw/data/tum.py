@@ -232,3 +232,7 @@ class TumDataset:
             frames += found
             self.unmatched += unmatched
         return frames
+
+    def split_source(self, split: str) -> str:
+        """What lists the split's frames, for messages: its sequence folders."""
+        return f"dataset.{split}={self.splits[split]} in {self.root}"

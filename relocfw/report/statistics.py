@@ -23,6 +23,16 @@ BOOTSTRAP_RESAMPLES = 2000
 UNDEFINED = "undefined (each side's median is infinite on a different seed)"
 
 
+def interval_undefined(undefined: int, resamples: int) -> str:
+    """The verdict where the observed difference is a number but a bound of its
+    interval is not: "interval undefined (792 of 2000 resamples undefined)".
+
+    Such a bound is infinite only because undefined resamples fill its tail; an
+    interval of [-inf, inf] would otherwise read as "no significant difference".
+    """
+    return f"interval undefined ({undefined} of {resamples} resamples undefined)"
+
+
 def spread(values: Sequence[float]) -> dict[str, float | list[float]]:
     """Mean, sample standard deviation (0 for one value), minimum and maximum."""
     array = np.asarray(values, dtype=np.float64)
@@ -151,6 +161,44 @@ def percentile_interval(resampled: np.ndarray, level: float = 0.95) -> tuple[flo
     return float(low), float(high)
 
 
+def undefined_bounds(resampled: np.ndarray, level: float = 0.95) -> tuple[bool, bool]:
+    """Which bounds of `percentile_interval` are infinite only because of undefined
+    resamples: (lower, upper).
+
+    A bound is undefined where it is infinite with the undefined resamples on its side
+    and finite with them moved to the other end; a few undefined resamples inside
+    the tails only widen a bound that stays a number, and a bound that is infinite
+    either way (a method failing most queries) is a defined infinity.
+    """
+    undefined = np.isnan(resampled)
+    tail = 100 * (1 - level) / 2
+    low_if_high = np.percentile(np.where(undefined, np.inf, resampled), tail, method="inverted_cdf")
+    high_if_low = np.percentile(
+        np.where(undefined, -np.inf, resampled), 100 - tail, method="inverted_cdf"
+    )
+    low, high = percentile_interval(resampled, level)
+    return bool(low == -np.inf and low_if_high > -np.inf), bool(
+        high == np.inf and high_if_low < np.inf
+    )
+
+
+def paired_verdict(
+    observed: float,
+    resampled: np.ndarray,
+    p_value: float,
+    direction: float,
+    alpha: float = SIGNIFICANCE,
+) -> str:
+    """The verdict of `paired_test`: UNDEFINED where the observed difference is,
+    `interval_undefined` where a bound of its interval is, else `verdict`."""
+    if np.isnan(observed):
+        return UNDEFINED
+    if any(undefined_bounds(resampled)):
+        return interval_undefined(int(np.isnan(resampled).sum()), len(resampled))
+    low, high = percentile_interval(resampled)
+    return verdict(p_value, low, high, direction, alpha)
+
+
 def paired_test(
     errors: np.ndarray,
     reference: np.ndarray,
@@ -179,8 +227,11 @@ def paired_test(
         queries are the independent units); `untied_pairs`: the queries with a
         non-zero difference (Wilcoxon drops ties, two failures included);
         `method_better_share`: the share of queries where that difference is
-        negative; and `verdict`, the result in words (UNDEFINED where
-        `median_difference` is).
+        negative; and `verdict`, the result in words: UNDEFINED where
+        `median_difference` is, `interval_undefined` (with the count of undefined
+        resamples) where a bound of `bootstrap_95` is infinite only because
+        undefined resamples fill its tail (see `undefined_bounds`), never "no
+        significant difference" there.
 
     The test holds the trained models fixed: the bootstrap resamples queries, so
     it says whether these seeds' models differ on this scene, and the spread over
@@ -209,7 +260,5 @@ def paired_test(
         "wilcoxon_p": p_value,
         "untied_pairs": int(np.count_nonzero(per_query)),  # what Wilcoxon ranks
         "method_better_share": float(np.mean(per_query < 0)),
-        "verdict": UNDEFINED
-        if np.isnan(observed)
-        else verdict(p_value, low, high, direction, alpha),
+        "verdict": paired_verdict(observed, resampled, p_value, direction, alpha),
     }

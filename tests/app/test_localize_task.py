@@ -11,7 +11,7 @@ from hydra import compose, initialize_config_module
 
 from relocfw import QueryOptions, Relocalizer
 from relocfw.app.tasks.localize import load_for_localize, localize_images
-from relocfw.core.errors import ConfigError
+from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.values import Crop, Localization, Pose
 from relocfw.model.model_file import save_model
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
@@ -142,3 +142,17 @@ def test_a_bad_query_value_for_localize_names_the_query_key(saved_model):
     cfg = localize_config(saved_model, "query.scoring=plain", "query.rerank=2")
     with pytest.raises(ConfigError, match=r"^query\.rerank=2 re-scores"):
         load_for_localize(cfg, torch.device("cpu"))
+
+
+def test_rows_before_a_failing_image_are_on_disk(tmp_path):
+    # Six images; the fifth (index 4) is corrupt: groups of two are answered, so
+    # rows 0..3 were made before the run stops, and they must not be lost with it.
+    paths = write_images(tmp_path / "images", [f"frame-{i}.png" for i in range(6)])
+    paths[4].write_bytes(b"not a png")
+    run_dir = tmp_path / "run"
+    with pytest.raises(DataError, match="frame-4.png"):
+        localize_images(GreyLevelRelocalizer(), paths, run_dir, quiet=True)
+    assert [row[0] for row in tum_rows(run_dir)] == ["0", "1", "2", "3"]
+    with open(run_dir / "localization.csv") as stream:
+        table = list(csv.DictReader(stream))
+    assert [row["image"] for row in table] == [str(p) for p in paths[:4]]
