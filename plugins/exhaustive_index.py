@@ -7,7 +7,7 @@ import torch
 
 from relocfw.core.errors import DataError
 from relocfw.core.interfaces import SimilarityIndex
-from relocfw.core.standardise import ZScore, check_features, k_nearest
+from relocfw.core.standardise import ZScore, check_features, finite_rows, k_nearest
 
 
 class ExhaustiveIndex(SimilarityIndex):
@@ -22,8 +22,16 @@ class ExhaustiveIndex(SimilarityIndex):
         return {**self.zscore.state(), "points": torch.from_numpy(self.points)}
 
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
-        self.zscore = ZScore().load_state(state)
-        self.points = state["points"].double().numpy()
+        """What `state` returned; a DataError naming the key for anything else (NaN
+        points would make every distance NaN)."""
+        zscore = ZScore().load_state(state)
+        self.points = finite_rows(state, "points", len(zscore.mean))
+        self.zscore = zscore
+
+    @property
+    def dim(self) -> int:
+        """The descriptors' dimensions (after fit or load_state)."""
+        return self.points.shape[1]
 
     def neighbours(self, features: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
         """[n, k] distances to and indices of the nearest training descriptors.

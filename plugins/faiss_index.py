@@ -200,9 +200,26 @@ class FaissIndex(SimilarityIndex):
         }
 
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
-        self.zscore = ZScore().load_state(state)
-        self.index = self.faiss.deserialize_index(state["faiss_index"].numpy())
-        self.dim = len(self.zscore.mean)
+        """What `state` returned; a DataError naming the key for anything else. An
+        index of another dimension than the standardisation would load and fail at
+        the first query: it is refused here."""
+        zscore = ZScore().load_state(state)
+        blob = state.get("faiss_index")
+        if not isinstance(blob, torch.Tensor) or blob.dtype != torch.uint8 or blob.ndim != 1:
+            raise DataError("faiss state: faiss_index must be the index's bytes (uint8)")
+        try:
+            index = self.faiss.deserialize_index(blob.numpy())
+        except RuntimeError as error:  # faiss says what it could not read
+            first = str(error).strip().splitlines()[0] if str(error).strip() else "unreadable"
+            raise DataError(f"faiss state: faiss_index cannot be read ({first})") from error
+        if index.d != len(zscore.mean):
+            raise DataError(
+                f"faiss state: faiss_index holds {index.d}-dimensional descriptors, the "
+                f"standardisation {len(zscore.mean)}"
+            )
+        if index.ntotal < 1:
+            raise DataError("faiss state: faiss_index holds no map descriptors")
+        self.zscore, self.index, self.dim = zscore, index, len(zscore.mean)
         self._configure_search()
 
     def _search(self, features: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:

@@ -9,7 +9,7 @@ from sklearn.cluster import KMeans
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.interfaces import SimilarityIndex
 from relocfw.core.options import integer_at_least
-from relocfw.core.standardise import ZScore, check_features, nearest
+from relocfw.core.standardise import ZScore, check_features, finite_rows, nearest
 
 
 class KMeansIndex(SimilarityIndex):
@@ -45,8 +45,16 @@ class KMeansIndex(SimilarityIndex):
         return {**self.zscore.state(), "centres": torch.from_numpy(self.centres)}
 
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
-        self.zscore = ZScore().load_state(state)
-        self.centres = state["centres"].double().numpy()
+        """What `state` returned; a DataError naming the key for anything else (NaN
+        centres would make every distance NaN)."""
+        zscore = ZScore().load_state(state)
+        self.centres = finite_rows(state, "centres", len(zscore.mean))
+        self.zscore = zscore
+
+    @property
+    def dim(self) -> int:
+        """The descriptors' dimensions (after fit or load_state)."""
+        return self.centres.shape[1]
 
     def assign(self, features: np.ndarray) -> np.ndarray:
         """Cluster of each descriptor (for plots of the map)."""

@@ -36,6 +36,7 @@ from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
 from relocfw.core.standardise import ZScore, check_features
 from relocfw.core.values import Pose
 from relocfw.model.sequence_network import SequencePoseNetwork, checked_direction
+from relocfw.model.state_checks import state_mismatch
 
 
 def recording_of(name: str) -> str:
@@ -222,11 +223,12 @@ class SequenceRefiner(PoseRefiner):
                 raise DataError(f"sequence state: {key} holds NaN or infinite values")
         if not (state["std"] > 0).all():
             raise DataError("sequence state: std must be > 0")
+        weights = {k[len("network.") :]: v for k, v in state.items() if k.startswith("network.")}
+        self.check_weight_shapes(len(mean), weights)
         with torch.random.fork_rng(devices=[]):  # building it draws initial weights
             network = SequencePoseNetwork(
                 len(mean), self.hidden, self.direction, self.input_dropout
             )
-        weights = {k[len("network.") :]: v for k, v in state.items() if k.startswith("network.")}
         try:
             network.load_state_dict(weights, strict=True)
         except RuntimeError as error:
@@ -241,6 +243,20 @@ class SequenceRefiner(PoseRefiner):
         self.position_mean, self.position_scale = position_mean, scale
         self.network = network.eval()
         self.history, self.seen = {}, {}
+
+    def check_weight_shapes(self, feature_dim: int, weights: dict[str, torch.Tensor]) -> None:
+        """A DataError when `weights` do not fit these options, found without building
+        the network (a crafted refine.hidden=10**9 would allocate terabytes)."""
+        options = (feature_dim, self.hidden, self.direction, self.input_dropout)
+        try:
+            mismatch = state_mismatch(lambda: SequencePoseNetwork(*options), weights)
+        except RuntimeError as error:  # sizes past what a tensor can hold
+            mismatch = str(error).strip().splitlines()[0]
+        if mismatch is not None:
+            raise DataError(
+                f"sequence state: the network's weights do not fit refine.hidden={self.hidden}, "
+                f"refine.direction={self.direction} and {feature_dim}-d descriptors ({mismatch})"
+            )
 
 
 def pose_loss(

@@ -69,12 +69,59 @@ class ZScore:
         return {"mean": torch.from_numpy(self.mean), "std": torch.from_numpy(self.std)}
 
     def load_state(self, state: dict[str, torch.Tensor]) -> ZScore:
-        self.mean = state["mean"].double().numpy()
-        self.std = state["std"].double().numpy()
+        """What `state` returned. A saved state is data from anyone: a NaN mean or a
+        zero spread would make every distance NaN, so it is refused here.
+
+        Raises:
+            DataError: mean or std missing, not vectors of one length, not finite, or
+                a spread not above 0.
+        """
+        mean, std = state_vector(state, "mean"), state_vector(state, "std")
+        if mean.shape != std.shape:
+            raise DataError(f"standardisation: mean has {len(mean)} values but std {len(std)}")
+        if not (np.isfinite(mean).all() and np.isfinite(std).all()):
+            raise DataError("standardisation: mean or std holds NaN or infinite values")
+        if not (std > 0).all():
+            raise DataError("standardisation: every std must be above 0 (it divides)")
+        self.mean, self.std = mean, std
         return self
 
     def __call__(self, features: np.ndarray) -> np.ndarray:
         return (np.asarray(features, dtype=np.float64) - self.mean) / self.std
+
+
+def state_vector(state: dict[str, torch.Tensor], key: str) -> np.ndarray:
+    """state[key] as a non-empty float64 vector, or a DataError naming `key`."""
+    value = state.get(key) if isinstance(state, dict) else None
+    if not isinstance(value, torch.Tensor) or value.ndim != 1 or len(value) == 0:
+        raise DataError(f"standardisation: {key} must be a non-empty vector, got {shape_of(value)}")
+    return value.double().numpy()
+
+
+def shape_of(value: object) -> str:
+    """A tensor's shape, or what else `value` is (for a one-line error)."""
+    if isinstance(value, torch.Tensor):
+        return f"shape {list(value.shape)}"
+    return "nothing" if value is None else f"a {type(value).__name__}"
+
+
+def finite_rows(state: dict[str, torch.Tensor], key: str, dim: int) -> np.ndarray:
+    """state[key] as a float64 [N >= 1, dim] array of finite values, or a DataError
+    naming `key` (an index's map, loaded from a file)."""
+    value = state.get(key) if isinstance(state, dict) else None
+    if not isinstance(value, torch.Tensor) or value.ndim != 2 or len(value) == 0:
+        raise DataError(
+            f"index state: {key} must be a non-empty [N, {dim}] array, got {shape_of(value)}"
+        )
+    if value.shape[1] != dim:
+        raise DataError(
+            f"index state: {key} has {value.shape[1]} dimensions, the standardisation {dim}"
+        )
+    rows = value.double().numpy()
+    for part in row_chunks(len(rows)):  # a small boolean temporary, as for descriptors
+        if not np.isfinite(rows[part]).all():
+            raise DataError(f"index state: {key} holds NaN or infinite values")
+    return rows
 
 
 def checked_descriptors(
