@@ -1,3 +1,6 @@
+import os
+import time
+
 import numpy as np
 import pytest
 import torch
@@ -279,6 +282,10 @@ def test_a_killed_writers_temporary_is_cleaned_up(data, tmp_path):
     checkpoint = tmp_path / "model.pt"
     stale = tmp_path / ".model.pt.k1ll3d"
     stale.write_bytes(b"half a checkpoint")
+    # Unlocked and a day old: no live writer can hold it (a fresh one may be another
+    # run's, tests/core/test_atomic_files_concurrency.py).
+    day_ago = time.time() - 24 * 3600 - 1
+    os.utime(stale, (day_ago, day_ago))
     train_backbone(tiny_model(), data, SETTINGS, checkpoint, key="k", quiet=True)
     assert not stale.exists() and load_checkpoint(checkpoint)["complete"]
 
