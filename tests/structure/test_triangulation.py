@@ -8,8 +8,15 @@ import pytest
 from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.values import Pose
+from relocfw.structure.map_view import MapView
+from relocfw.structure.structure_map import (
+    build_by_triangulation,
+    median_of_candidates,
+    triangulation_partners,
+)
 from relocfw.structure.triangulation import triangulate
 from tests.structure.scenes import to_camera
+from tests.structure.textured_world import looking_at, make_world, render, surface_points
 
 CAMERA = SEVENSCENES_DEFAULT
 OTHER_CAMERA = PinholeCamera(500.0, 510.0, 300.0, 250.0, 600, 500)
@@ -130,3 +137,65 @@ def test_impossible_bounds_raise_a_config_error_naming_them(options, name):
     pose_a, pose_b = two_views()
     with pytest.raises(ConfigError, match=name):
         triangulate(np.zeros((1, 2)), np.zeros((1, 2)), CAMERA, pose_a, CAMERA, pose_b, **options)
+
+
+# A map image's point is the component-wise median of what its partners triangulate
+# (relocfw.structure.structure_map.build_by_triangulation): one wrong partner among
+# three must not move it, where a mean or the nearest partner alone would follow it.
+
+
+def test_the_median_of_candidates_ignores_one_outlier_partner():
+    nan = [np.nan] * 3
+    candidates = np.array(
+        [
+            # The outlier first (the nearest partner), two that agree after it.
+            [[0.0, 0.0, 5.0], [0.0, 0.0, 2.0], [0.0, 0.0, 2.1]],
+            # A partner without a point for this keypoint is not counted.
+            [nan, [1.0, -1.0, 3.0], [1.2, -1.2, 3.2]],
+            [nan, nan, [0.5, 0.5, 2.5]],
+            [nan, nan, nan],
+        ]
+    )
+    got = median_of_candidates(candidates)
+    # By hand: the middle of 2.0, 2.1, 5.0 is 2.1 (mean 3.03, first 5.0); of two
+    # valid rows, their middle; one valid row is itself; none stays NaN.
+    np.testing.assert_allclose(got[0], [0.0, 0.0, 2.1], atol=1e-6)
+    np.testing.assert_allclose(got[1], [1.1, -1.1, 3.1], atol=1e-6)
+    np.testing.assert_allclose(got[2], [0.5, 0.5, 2.5], atol=1e-6)
+    assert np.isnan(got[3]).all()
+    assert got.dtype == np.float32
+
+
+def test_a_map_image_with_one_wrong_partner_of_three_keeps_its_true_points():
+    """Three partners see the same pixels; the nearest one's recorded pose is wrong.
+
+    Its recorded position is moved 30% of the way towards the map image along their
+    baseline (orientation kept), so every point it triangulates is pulled 30% of the
+    way towards the map image's camera: exactly consistent rays (they pass the
+    reprojection check) but 0.6 to 1.2 m off. The two right partners agree, so the
+    median is theirs; a mean would be off by a third of that, the first partner alone
+    by all of it.
+    """
+    camera = CAMERA.scaled_to(320, 240)  # small images: this builds in about a second
+    world = make_world(seed=0)
+    own = looking_at([0.0, 0.0, 0.0], [0.0, 0.0, 3.0])
+    other = looking_at([0.3, 0.05, 0.0], [0.0, 0.0, 3.0])
+    wrong = Pose(own.position + 0.7 * (other.position - own.position), other.quaternion)
+    seen = render(world, other, camera)
+    views = [
+        MapView(render(world, own, camera), own, camera, None, "own"),
+        MapView(seen, wrong, camera, None, "wrong-pose"),
+        MapView(seen, other, camera, None, "right-1"),
+        MapView(seen.copy(), other, camera, None, "right-2"),
+    ]
+    # The wrong partner is the nearest, so it comes first.
+    assert triangulation_partners([v.pose for v in views], partners=3)[0] == [1, 2, 3]
+    structure = build_by_triangulation(views, max_features=1024, partners=3, quiet=True)
+    points = structure.points[0]
+    truth = surface_points(world, own, camera, structure.features[0].keypoints)
+    valid = np.isfinite(points).all(axis=1)
+    assert valid.sum() >= 300
+    errors = np.linalg.norm(points[valid] - truth[valid], axis=1)
+    # Measured: median 6 mm, 90% within 3 cm; a mean gives 23-41 cm for every point.
+    assert np.median(errors) < 0.02
+    assert np.quantile(errors, 0.9) < 0.1
