@@ -44,6 +44,41 @@ def test_compare_runs_the_sequence_rows_on_posenets_model(tmp_path):
     for name, row in rows.items():
         if name in ("Causal", "Bidirectional"):  # its own answer, from the frames of the recording
             assert row["median_position_m"] != centre, name
+    answers = answers_of(run_dir / "results_synthetic.csv")
+    # The refiner replaces the pose only: each query's crop and map distance are the
+    # centre crop's of the same network, PoseNet's row's, to the digit.
+    for name in ("Causal", "Bidirectional"):
+        assert [a["window"] for a in answers[name]] == [a["window"] for a in answers["PoseNet"]]
+    # Each row answers as task=relocalize does with the row's options (on the cached
+    # network, no training): every option of the row reaches its refiner.
+    sweep = tmp_path / "relocalized"
+    again = relocfw(
+        ["-m", *TINY_OVERRIDES, *OPTIONS, "refine.direction=causal,bidirectional"]
+        + [f"hydra.sweep.dir={sweep}"],
+        tmp_path,
+    )
+    assert again.returncode == 0, again.stderr
+    assert "(trained)" not in again.stdout
+    for job, name in enumerate(("Causal", "Bidirectional")):
+        relocalized = answers_of(sweep / str(job) / "results.csv")
+        (method,) = [m for m in relocalized if m.endswith("+ sequence")]
+        assert relocalized[method] == answers[name], name
+
+
+def answers_of(path):
+    """results CSV -> method -> its rows in order: frame, estimated pose (the CSV's
+    digits) and its window (crop and map distance)."""
+    answers = {}
+    with open(path) as stream:
+        for row in csv.DictReader(stream):
+            answers.setdefault(row["method"], []).append(
+                {
+                    "frame": row["frame"],
+                    "pose": [row[f"est_{c}"] for c in ("x", "y", "z", "qw", "qx", "qy", "qz")],
+                    "window": [row[c] for c in ("crop_x", "crop_y", "crop_size", "distance")],
+                }
+            )
+    return answers
 
 
 def test_a_sequence_model_file_localizes_a_folder_as_the_run_did(tiny_scene, tmp_path):

@@ -1,6 +1,9 @@
 """backbone=hourglass: EfficientNet-Lite0 encoder, up-convolutional decoder joined to the
 encoder by skips, PoseNet's head (plugins/hourglass.py)."""
 
+import csv
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -8,6 +11,8 @@ import torch
 
 from relocfw.core.contracts import check_backbone, check_sampling
 from relocfw.core.errors import ConfigError
+from relocfw.core.interfaces import CropProposals, CropSearch, SearchQuery
+from relocfw.core.values import Crop
 from relocfw.plugins.efficientnet_lite import EfficientNetLite0
 from relocfw.plugins.hourglass import Hourglass
 from tests.cli_runs import relocfw
@@ -196,13 +201,48 @@ def test_relocfw_trains_maps_and_relocalizes_with_the_hourglass(tmp_path):
     result = relocfw(args, tmp_path)
     assert result.returncode == 0, result.stderr
     assert "ga + kmeans (k=4)" in result.stdout
-    # The model file rebuilds the hourglass (decoder and all) and scores shared strips.
+    # The model file rebuilds the hourglass (decoder and all): every test frame gets
+    # the crop and the pose the run recorded for it.
     from relocfw.model.model_file import load_model
 
-    loaded = load_model(run_dir / "model.relocfw", overrides={"scoring": "shared"})
+    loaded = load_model(run_dir / "model.relocfw")
     network = loaded.scorer.backbone
     assert isinstance(network, Hourglass) and network.decoder_channels == (32, 16, 16)
-    image = cv2.imread(str(next((tmp_path / "cache").rglob("*.color.png"))))[:, :, ::-1]
-    answer = loaded.localize(np.ascontiguousarray(image))
-    assert np.all(np.isfinite(answer.pose.position))
+    with open(run_dir / "results.csv") as stream:
+        rows = [r for r in csv.DictReader(stream) if r["method"].endswith("ga + kmeans (k=4)")]
+    assert [r["frame"] for r in rows] == [f"seq-03/frame-00000{i}" for i in range(4)]
+    for row in rows:
+        answer = loaded.localize(frame_image(tmp_path / "cache", row["frame"]))
+        recorded = [float(row[f"est_{c}"]) for c in ("x", "y", "z", "qw", "qx", "qy", "qz")]
+        found = [*answer.pose.position, *answer.pose.quaternion]
+        np.testing.assert_allclose(found, recorded, atol=1e-5)  # the CSV keeps 6 decimals
+        assert [answer.crop.x, answer.crop.y, answer.crop.size] == [
+            int(row[f"crop_{c}"]) for c in ("x", "y", "size")
+        ]
+    # Scoring shared strips, the answer is the chosen crop's own network pose: the pose
+    # the file's network gives that crop alone.
+    shared = load_model(run_dir / "model.relocfw", overrides={"scoring": "shared"})
+    image = frame_image(tmp_path / "cache", rows[0]["frame"])
+    answer = shared.localize(image)
     assert answer.network_passes > 1  # the strip's pass, then the chosen crop's
+    alone = loaded.replace(search=FixedCrop(answer.crop)).localize(image)
+    assert alone.crop == answer.crop and alone.evaluations == 1
+    np.testing.assert_allclose(answer.pose.position, alone.pose.position, atol=1e-5)
+    np.testing.assert_allclose(answer.pose.quaternion, alone.pose.quaternion, atol=1e-5)
+
+
+class FixedCrop(CropSearch):
+    """A search that always answers with one given crop, scoring nothing."""
+
+    def __init__(self, crop: Crop) -> None:
+        self.crop = crop
+
+    def propose(self, query: SearchQuery) -> CropProposals:
+        return Crop(self.crop.x, self.crop.y, self.crop.size)
+        yield  # a generator that asks for nothing, as crop=centre
+
+
+def frame_image(cache: Path, frame: str) -> np.ndarray:
+    """The RGB image of a synthetic scene's frame ("seq-03/frame-000000") in the cache."""
+    path = next(cache.rglob(f"{frame}.color.png"))
+    return np.ascontiguousarray(cv2.imread(str(path))[:, :, ::-1])

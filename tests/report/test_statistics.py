@@ -159,3 +159,53 @@ def test_a_uniform_five_percent_improvement_is_found_by_the_paired_bootstrap():
     low, high = test["bootstrap_95"]
     assert low <= test["median_difference"] <= high < 0
     assert test["verdict"] == "significantly lower"
+
+
+def test_the_signed_rank_direction_is_the_sign_of_the_rank_sum_not_of_the_sign_count():
+    from relocfw.report.statistics import signed_rank_direction
+
+    # Three of five differences are positive, but the two negative ones are the
+    # largest: signed ranks +1 +2 +3 -4 -5 sum to -3, so the test leans lower.
+    differences = np.array([0.1, 0.2, 0.3, -1.0, -2.0])
+    assert signed_rank_direction(differences) == -1.0
+    assert signed_rank_direction(-differences) == 1.0
+    # Ties (zeros) are dropped before ranking, as Wilcoxon drops them.
+    assert signed_rank_direction(np.array([0.0, 0.0, 0.1, 0.2, -0.5])) == 0.0
+
+
+def test_a_method_worse_on_most_queries_by_little_and_far_better_on_the_rest_is_lower():
+    # 60 queries 1 cm worse, 40 queries 1 m better: most signs say "higher", the rank
+    # sum (the quantity the signed-rank test tests) and the medians say "lower".
+    reference = np.tile(np.linspace(2.0, 3.0, 100), (2, 1))
+    errors = reference.copy()
+    errors[:, :60] += 0.01
+    errors[:, 60:] -= 1.0
+    test = paired_test(errors, reference, seed=0, resamples=500)
+    assert test["method_better_share"] == 0.4
+    low, high = test["bootstrap_95"]
+    assert high < 0 and test["wilcoxon_p"] < 0.05
+    assert test["verdict"] == "significantly lower"
+
+
+def test_the_bootstrap_resamples_the_same_queries_on_every_seed():
+    # Seed 1 holds seed 0's errors with the two methods swapped: on any one set of rows the
+    # difference of medians is +d on seed 0 and -d on seed 1, so the mean over seeds
+    # is exactly 0 on every resample. Rows drawn apart per seed would not cancel.
+    rng = np.random.default_rng(0)
+    a, b = rng.exponential(1.0, size=(2, 40))
+    errors, reference = np.stack([a, b]), np.stack([b, a])
+    test = paired_test(errors, reference, seed=4, resamples=300)
+    assert test["median_difference"] == 0.0
+    assert test["bootstrap_95"] == [0.0, 0.0]
+
+
+def test_seeds_with_the_same_errors_give_the_interval_of_one_seed():
+    # With the rows shared by every seed, repeating one seed's errors changes no
+    # resample: the interval is the one-seed interval from the same bootstrap seed.
+    rng = np.random.default_rng(1)
+    reference = rng.exponential(1.0, size=(1, 50))
+    errors = reference * rng.uniform(0.5, 1.2, size=(1, 50))
+    one = paired_test(errors, reference, seed=5, resamples=400)
+    repeated = np.repeat(errors, 3, axis=0), np.repeat(reference, 3, axis=0)
+    three = paired_test(*repeated, seed=5, resamples=400)
+    assert three["bootstrap_95"] == pytest.approx(one["bootstrap_95"], abs=1e-12)
