@@ -45,8 +45,8 @@ def write_images(folder, names):
     return paths
 
 
-def tum_rows(run_dir):
-    lines = (run_dir / "poses.txt").read_text().splitlines()
+def tum_rows(run_dir, name="poses.txt"):
+    lines = (run_dir / name).read_text().splitlines()
     assert lines[0] == "# timestamp tx ty tz qx qy qz qw (camera-to-world)"
     return [line.split(" ") for line in lines[1:]]
 
@@ -149,10 +149,21 @@ def test_rows_before_a_failing_image_are_on_disk(tmp_path):
     # rows 0..3 were made before the run stops, and they must not be lost with it.
     paths = write_images(tmp_path / "images", [f"frame-{i}.png" for i in range(6)])
     paths[4].write_bytes(b"not a png")
+    # A previous run's finished files under the final names are left as they were.
     run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "poses.txt").write_text("a finished run's poses\n")
+    (run_dir / "localization.csv").write_text("a finished run's table\n")
     with pytest.raises(DataError, match="frame-4.png"):
         localize_images(GreyLevelRelocalizer(), paths, run_dir, quiet=True)
-    assert [row[0] for row in tum_rows(run_dir)] == ["0", "1", "2", "3"]
-    with open(run_dir / "localization.csv") as stream:
+    assert [row[0] for row in tum_rows(run_dir, "poses.txt.partial")] == ["0", "1", "2", "3"]
+    with open(run_dir / "localization.csv.partial") as stream:
         table = list(csv.DictReader(stream))
     assert [row["image"] for row in table] == [str(p) for p in paths[:4]]
+    assert (run_dir / "poses.txt").read_text() == "a finished run's poses\n"
+    assert (run_dir / "localization.csv").read_text() == "a finished run's table\n"
+    # Finished, the same run leaves the final names only.
+    paths[4].write_bytes((tmp_path / "images" / "frame-3.png").read_bytes())
+    localize_images(GreyLevelRelocalizer(), paths, run_dir, quiet=True)
+    assert len(tum_rows(run_dir)) == 6
+    assert not any(run_dir.glob("*.partial"))

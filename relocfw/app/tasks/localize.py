@@ -11,6 +11,7 @@ import csv
 import glob
 import os
 import re
+import sys
 from pathlib import Path
 
 import torch
@@ -77,18 +78,27 @@ def timestamp_of(path: Path, position: int) -> str:
     return path.stem if TIMESTAMP_NAME.fullmatch(path.stem) else str(position)
 
 
+PARTIAL_SUFFIX = ".partial"
+
+
 class AnswerFiles:
     """poses.txt (TUM format) and localization.csv, written one row per answer as it
-    is made and flushed: a run that stops at image 900 (a crash, a kill, a bad file)
-    keeps the 899 rows before it. A finished run leaves the same files as before."""
+    is made and flushed.
+
+    The rows go to `poses.txt.partial` and `localization.csv.partial` first: a run
+    that stops at image 900 (a crash, a kill, a bad file) keeps the 899 rows before
+    it there, and a finished run renames them over the final names, so files a
+    previous run left under those names are never replaced by a half-written one.
+    """
 
     def __init__(self, run_dir: Path) -> None:
         self.poses_path = Path(run_dir) / "poses.txt"
         self.table_path = Path(run_dir) / "localization.csv"
         Path(run_dir).mkdir(parents=True, exist_ok=True)
-        self.poses = self.poses_path.open("w", encoding="utf-8")
-        self.table = self.table_path.open("w", encoding="utf-8", newline="")
+        self.poses = partial_of(self.poses_path).open("w", encoding="utf-8")
+        self.table = partial_of(self.table_path).open("w", encoding="utf-8", newline="")
         self.writer = csv.writer(self.table)
+        self.written = 0
         self.poses.write("# timestamp tx ty tz qx qy qz qw (camera-to-world)\n")
         self.writer.writerow(COLUMNS)
         self.flush()
@@ -104,6 +114,7 @@ class AnswerFiles:
             + [f"{v:.9f}" for v in (x, y, z, qw, qx, qy, qz)]
             + answer_cells(answer)
         )
+        self.written += 1
 
     def flush(self) -> None:
         """Hand what is written to the system: a crash or kill of this process after
@@ -112,12 +123,27 @@ class AnswerFiles:
         for file in (self.poses, self.table):
             file.flush()
 
-    def close(self) -> None:
-        """Flush, sync to disk and close both files."""
+    def close(self, finished: bool) -> None:
+        """Flush, sync to disk and close both files; a finished run's take their final
+        names, a stopped run's stay `.partial` and one line on stderr says where."""
         for file in (self.poses, self.table):
             file.flush()
             os.fsync(file.fileno())
             file.close()
+        if finished:
+            for path in (self.poses_path, self.table_path):
+                os.replace(partial_of(path), path)
+            return
+        print(
+            f"localize: stopped after {self.written} images; their answers are in "
+            f"{partial_of(self.poses_path)} and {partial_of(self.table_path)}",
+            file=sys.stderr,
+        )
+
+
+def partial_of(path: Path) -> Path:
+    """Where `path` is written until the run finishes."""
+    return path.with_name(path.name + PARTIAL_SUFFIX)
 
 
 def localize_group(
@@ -139,7 +165,7 @@ def localize_images(
     relocalizer: Relocalizer, images: list[Path], run_dir: Path, quiet: bool = False
 ) -> list[Localization]:
     """Localize every image; write poses.txt (TUM format) and localization.csv as it
-    goes (see AnswerFiles: a run that stops keeps the rows it made)."""
+    goes (see AnswerFiles: a run that stops keeps the rows it made, as `.partial`)."""
     progress = Progress(len(images), "localizing", quiet=quiet)
     answers: list[Localization] = []
     # Any object with `localize` works; a Relocalizer's options say how many at once.
@@ -149,6 +175,7 @@ def localize_images(
     # folder as its recording and the images in the order given (sorted by name).
     refined = getattr(relocalizer, "refiner", None) is not None
     files = AnswerFiles(run_dir)
+    finished = False
     try:
         for start in range(0, len(images), group):
             paths = images[start : start + group]
@@ -158,8 +185,9 @@ def localize_images(
             files.flush()
             answers += found
             progress.advance(len(paths))
+        finished = True
     finally:
-        files.close()
+        files.close(finished)
         progress.close()
     print(f"{len(answers)} images localized: {files.poses_path}, {files.table_path}")
     return answers
