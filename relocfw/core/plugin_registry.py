@@ -66,7 +66,20 @@ def package_folder(package: str) -> Path | None:
         folder = Path(location).joinpath(*inner)
         if folder.is_dir():
             return folder
-    return None
+    return mapped_package_folder(package)
+
+
+def mapped_package_folder(package: str) -> Path | None:
+    """A config package that is not a subfolder of its parent (an editable install
+    with its own package-dir mapping): found by its full name, which imports the
+    parent, so any failure of the parent's code leaves this one plugin unfound."""
+    try:
+        spec = importlib.util.find_spec(package)
+    except Exception:  # the parent's __init__ is a third party's code
+        return None
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    return Path(next(iter(spec.submodule_search_locations)))
 
 
 def group_files(group: str) -> list[tuple[ConfigSource, Path]]:

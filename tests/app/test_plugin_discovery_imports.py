@@ -55,3 +55,10 @@ def test_the_cli_lists_plugins_with_a_raising_plugin_installed(raising_site, tmp
     result = relocfw(["task=plugins"], tmp_path, PYTHONPATH=str(raising_site))
     assert result.returncode == 0, result.stderr
     assert "raising" in result.stdout and "[raisingplug]" in result.stdout
+
+
+def test_a_config_package_found_only_by_importing_a_raising_parent_is_left_out(raising_site):
+    # No such subfolder: the full-name lookup (for editable installs that map the
+    # config package elsewhere) imports the parent, whose failure stays contained.
+    assert package_folder(f"{PACKAGE}.elsewhere") is None
+    assert any(path.name == "raising.yaml" for _, path in group_files("crop"))
