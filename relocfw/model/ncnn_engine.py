@@ -7,10 +7,11 @@ checkpoint or model file `owner`) are converted by pnnx, ncnn's converter, into
 `OWNER-<kind>.ncnn.param` and `.ncnn.bin`, with `OWNER-<kind>.ncnn.json` recording
 which ONNX graph they came from, the two files' hashes and the ncnn and pnnx
 versions. A set whose record is missing, unreadable, of another ONNX graph, of other
-files or of other versions, or whose network answers differently from torch on the
-check images, is converted again (one note), never used. Every network, cached or
-fresh, first runs once in a process of its own (the probe in
-relocfw.model.ncnn_session): ncnn is C++, and a network it mishandles on this CPU
+files or of other versions, or whose network answers differently from torch on
+fresh check images (relocfw.model.onnx_graphs.check_images: the record is its
+writer's word, the answers are checked), is converted again (one note), never used.
+Every network, cached or fresh, first runs once in a process of its own (the probe
+in relocfw.model.ncnn_session): ncnn is C++, and a network it mishandles on this CPU
 crashes that process, not the user's run. ncnn loads only its
 own layer types from a .param file: nothing a file names is imported or run.
 

@@ -18,11 +18,14 @@ graph with the mask as an input would be a second network to keep in step.
 Each file holds the weights' fingerprint, its kind and relocfw's graph format in its
 metadata; a file that cannot be read, holds other weights, another kind or format,
 or answers differently from torch on the check images is rebuilt (atomically), never
-used.
+used. The metadata is only its writer's word (a file beside a model comes from
+wherever the model came from), so the check images are fresh each open and hold the
+pixels real crops hold (`check_images`): no file can know them in advance.
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -33,6 +36,7 @@ from torch import nn
 
 from relocfw.core.atomic_files import atomic_write
 from relocfw.core.errors import DataError
+from relocfw.core.imaging import to_network_input
 from relocfw.core.interfaces import Backbone
 from relocfw.model.dropout_backbone import DropoutBackbone
 from relocfw.model.onnx_export import (
@@ -53,6 +57,9 @@ MAPS_OUTPUT = "maps"
 # value above 1 (and to the output's size below 1): what the engine promises is
 # torch's answer to 1e-4; float32 kernels differ by summation order, about 1e-6.
 ENGINE_TOLERANCE = 1e-4
+# Check images at the input size each time a graph is opened (`check_images`): noise
+# and smooth shading twice each, a batch that costs little (docs/engine.md measures it).
+CHECK_IMAGES = 4
 
 
 class PartGraph(nn.Module):
@@ -137,39 +144,65 @@ def graph_bytes(network: Backbone, kind: GraphKind, fingerprint: str, version: s
     return graph.SerializeToString()
 
 
-def largest_difference(session: Any, network: Backbone, kind: GraphKind) -> float:
-    """Largest |onnxruntime - torch| of the graph's outputs on seeded random images of
-    every check size; DataError when one is beyond ENGINE_TOLERANCE."""
+def check_images(count: int, height: int, width: int, rng: np.random.Generator) -> torch.Tensor:
+    """`count` images [count, 3, height, width] a graph file cannot predict, as the
+    pipeline feeds them: uint8 pixels / 255 (relocfw.core.imaging.to_network_input).
+
+    `rng` is fresh per open (seeded by the OS), so no file can hold its check's answers;
+    the pixels are what real crops hold, so a graph cannot tell a check from a query by
+    their values (before issue 39 they were continuous, which a forged graph could test for).
+    Every other image is smooth random shading, not noise, so neither kind's statistics
+    alone mark an image as a check.
+    """
+    pixels = np.empty((count, 3, height, width), dtype=np.uint8)
+    for number in range(count):
+        if number % 2 == 0:
+            pixels[number] = rng.integers(0, 256, (3, height, width), dtype=np.uint8)
+        else:
+            grid = torch.from_numpy(rng.random((1, 3, *rng.integers(2, 9, 2))))
+            shading = nn.functional.interpolate(grid, (height, width), mode="bilinear")
+            pixels[number] = np.rint(shading[0].numpy() * 255)
+    return to_network_input(torch.from_numpy(pixels))
+
+
+def checked_answers(
+    session: Any, network: Backbone, kind: GraphKind, rng: np.random.Generator | None = None
+) -> Iterator[tuple[str, np.ndarray, np.ndarray, tuple[int, int]]]:
+    """(output name, the graph's answer, torch's answer, (height, width)) on fresh check
+    images (`check_images`): CHECK_IMAGES at the input size (the batch is dynamic), one
+    at each other check size. `rng`: None draws a fresh one from the OS."""
+    rng = np.random.default_rng() if rng is None else rng
     module = kind.module(network).eval()
-    side = int(network.input_size)
-    largest = 0.0
-    for number, (height, width) in enumerate(kind.check_sizes(side)):
-        # Three images at the input size (the batch is dynamic), one at each other size.
-        count = 3 if number == 0 else 1
-        images = torch.rand(
-            count, 3, height, width, generator=torch.Generator().manual_seed(number)
-        )
+    for number, size in enumerate(kind.check_sizes(int(network.input_size))):
+        images = check_images(CHECK_IMAGES if number == 0 else 1, *size, rng)
         answers = session.run(list(kind.outputs), {INPUT_NAME: images.numpy()})
         with torch.no_grad():
             expected = module(images)
         expected = expected if isinstance(expected, tuple) else (expected,)
         for name, got, want in zip(kind.outputs, answers, expected, strict=True):
-            want = want.numpy()
-            # Absolute tolerance scaled down for outputs far below 1 (an untrained
-            # network's maps), so a graph of other weights cannot pass as noise.
-            scale = min(1.0, float(np.max(np.abs(want), initial=0.0)))
-            atol = ENGINE_TOLERANCE * max(scale, 1e-6)
-            if got.shape != want.shape or not np.allclose(got, want, ENGINE_TOLERANCE, atol):
-                detail = (
-                    f"shape {got.shape} against {want.shape}"
-                    if got.shape != want.shape
-                    else f"up to {np.max(np.abs(got - want)):.3g}"
-                )
-                raise DataError(
-                    f"the {kind.name} graph's {name} differ from torch's ({detail}) on "
-                    f"{height} x {width} check images"
-                )
-            largest = max(largest, float(np.max(np.abs(got - want))))
+            yield name, np.asarray(got), want.numpy(), size
+
+
+def largest_difference(session: Any, network: Backbone, kind: GraphKind) -> float:
+    """Largest |graph - torch| of the graph's outputs on fresh check images of every
+    check size (`checked_answers`); DataError when one is beyond ENGINE_TOLERANCE."""
+    largest = 0.0
+    for name, got, want, (height, width) in checked_answers(session, network, kind):
+        # Absolute tolerance scaled down for outputs far below 1 (an untrained
+        # network's maps), so a graph of other weights cannot pass as noise.
+        scale = min(1.0, float(np.max(np.abs(want), initial=0.0)))
+        atol = ENGINE_TOLERANCE * max(scale, 1e-6)
+        if got.shape != want.shape or not np.allclose(got, want, ENGINE_TOLERANCE, atol):
+            detail = (
+                f"shape {got.shape} against {want.shape}"
+                if got.shape != want.shape
+                else f"up to {np.max(np.abs(got - want)):.3g}"
+            )
+            raise DataError(
+                f"the {kind.name} graph's {name} differ from torch's ({detail}) on "
+                f"{height} x {width} check images"
+            )
+        largest = max(largest, float(np.max(np.abs(got - want))))
     return largest
 
 
