@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import hashlib
 import json
-import re
 from pathlib import Path
 from typing import Any
 
 import torch
+from packaging.version import InvalidVersion, Version
 
 # The generic writers live in core; still importable from here, their first path.
 from relocfw.core.atomic_files import (  # noqa: F401
@@ -26,11 +26,7 @@ CHECKPOINT_FORMAT = 3
 # crafted file runs code (CVE-2025-32434), and up to 2.9.1 it can corrupt memory
 # (GHSA-63cw-57p8-fm3p, fixed in 2.10.0). pyproject.toml asks for it, but a user can
 # pin any torch, so no file is read under an older one (read_torch_file).
-SAFE_TORCH = (2, 10, 0)
-# A version's release numbers and what follows them ("2.13.0+cpu", "2.10.0rc1").
-RELEASE = re.compile(r"(\d+)\.(\d+)(?:\.(\d+))?(.*)")
-# What marks a build before its release: alpha, beta, release candidate, development.
-PRE_RELEASE = re.compile(r"[._-]?(a|b|c|rc|alpha|beta|pre|preview|dev)\d*", re.IGNORECASE)
+SAFE_TORCH = Version("2.10.0")
 
 
 def settings_key(settings: dict[str, Any]) -> str:
@@ -54,23 +50,20 @@ def is_safe_torch(version: str) -> bool:
     """True when torch `version` is SAFE_TORCH or later.
 
     A pre-release or development build of a release ("2.10.0rc1", "2.10.0a0+git...")
-    counts as before it: the fix may not be in it. A version that cannot be read is
-    not trusted.
+    counts as before it (the fix may not be in it), a local build of it ("+cpu") as
+    it. A version that cannot be read is not trusted.
     """
-    found = RELEASE.fullmatch(version.strip())
-    if found is None:
+    try:
+        return Version(version.strip()) >= SAFE_TORCH
+    except InvalidVersion:
         return False
-    release = tuple(int(number or 0) for number in found.group(1, 2, 3))
-    if release != SAFE_TORCH:
-        return release > SAFE_TORCH
-    return PRE_RELEASE.match(found.group(4).partition("+")[0]) is None
 
 
 def refuse_unsafe_torch(path: Path, what: str) -> None:
     """A DataError naming `path` when the installed torch's loader is unsafe."""
     installed = installed_torch()
     if not is_safe_torch(installed):
-        floor = ".".join(map(str, SAFE_TORCH))
+        floor = str(SAFE_TORCH)
         raise DataError(
             f"{what}: refused to read {path} with torch {installed}: its weights-only "
             f"loader is unsafe on a crafted file before torch {floor} (CVE-2025-32434, "
