@@ -28,8 +28,8 @@ quoted as its architecture.
   ImageNet weights that ship offline with relocfw are EfficientNet-Lite0's, so that is
   the encoder; its stages end at the same strides (4, 8, 16, 32), with other widths.
 - Decoder (unchecked): one up-convolution per resolution stage above the finest, so
-  three, back to stride 4, each followed by BatchNorm and ReLU (as issue 25 describes
-  the paper's decoder); the 4x4 kernel is chosen here, and the default widths mirror
+  three, back to stride 4, each followed by BatchNorm and ReLU (as the paper's
+  decoder is described); the 4x4 kernel is chosen here, and the default widths mirror
   ResNet34's stages.
 - Join (unchecked): concatenation, as in U-Net. It keeps each skip's maps unchanged
   and lets the decoder's widths differ from EfficientNet's narrow stages (24, 40, 112

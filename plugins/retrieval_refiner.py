@@ -4,8 +4,8 @@ The query's answer is the distance-weighted mean pose of the `k` map images whos
 descriptors are nearest to the chosen crop's descriptor, instead of the network's pose.
 The refiner keeps its own z-scored copy of the map's descriptors, standardised exactly
 as index=exhaustive standardises them, so it works beside any index (the index serves
-the crop search) and finds the neighbours index=exhaustive would. Before issue 22 this
-was the query option `retrieval_k`, which needed index=exhaustive.
+the crop search) and finds the neighbours index=exhaustive would (the older query option
+`retrieval_k` needed index=exhaustive).
 
 Memory: that copy is float64, N x D x 8 bytes (a 700-image map of 1280-d EfficientNet
 descriptors: 7 MB; 10^6 x 2048: 16 GB), searched exhaustively, beside whatever the

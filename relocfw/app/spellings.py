@@ -8,7 +8,7 @@ stderr says so. Only the key changes; the value (a multirun list such as
 
 An option that became something a key cannot follow is refused instead, in one line
 giving the new spelling: `query.retrieval_k=K` (and the older `retrieval_k=K`) is the
-refiner `refine=retrieval refine.k=K` since issue 22, two overrides where there was
+refiner `refine=retrieval refine.k=K` now, two overrides where there was
 one, and `refine=` may already be set otherwise on the same line.
 """
 

@@ -42,8 +42,8 @@ def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
     180-degree rotations where the trace formula loses all precision. Kept by hand, not
     scipy's Rotation.from_matrix: scipy first snaps a drifted matrix to the nearest
     rotation, which moves ground-truth quaternions by ~1e-9 (synthetic) to ~1e-4
-    (KinectFusion), enough to change a trained model (issue 21 measured it on command
-    1's demo model); these are the quaternions every model so far was trained on.
+    (KinectFusion), enough to change a trained model (measured on the default command's
+    demo model); these are the quaternions every model so far was trained on.
     """
     m = np.asarray(rotation, dtype=np.float64)
     trace = m[0, 0] + m[1, 1] + m[2, 2]

@@ -7,8 +7,8 @@ need only the options run once, here; those that need the backbone or the refine
 that replaces the network's pose) run when a Relocalizer is built
 (relocfw.core.pipeline.check_options).
 
-The image-retrieval baseline was the option `retrieval_k` before issue 22; it is the
-refiner `refine=retrieval` now (relocfw.plugins.retrieval_refiner.RetrievalRefiner).
+The image-retrieval baseline is the refiner `refine=retrieval`, not a query option
+(relocfw.plugins.retrieval_refiner.RetrievalRefiner).
 """
 
 from __future__ import annotations

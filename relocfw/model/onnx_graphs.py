@@ -150,7 +150,7 @@ def check_images(count: int, height: int, width: int, rng: np.random.Generator) 
 
     `rng` is fresh per open (seeded by the OS), so no file can hold its check's answers;
     the pixels are what real crops hold, so a graph cannot tell a check from a query by
-    their values (before issue 39 they were continuous, which a forged graph could test for).
+    their values (continuous pixel values are something a forged graph could test for).
     Every other image is smooth random shading, not noise, so neither kind's statistics
     alone mark an image as a check.
     """
