@@ -17,6 +17,7 @@ and files that an older relocfw wrote owner-only get the usual mode when rewritt
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import time
@@ -84,10 +85,13 @@ def hold_exclusive_lock(handle: int) -> None:
 def give_usual_mode(handle: int, temporary: str) -> None:
     """Give the temporary `usual_file_mode` instead of mkstemp's 0o600."""
     mode = usual_file_mode()
-    if hasattr(os, "fchmod"):
-        os.fchmod(handle, mode)
-    else:
-        os.chmod(temporary, mode)
+    # Some file systems (exFAT, vfat) refuse a change of mode; the mode is a courtesy,
+    # the data is what must land, so such a file keeps the mode it was given.
+    with contextlib.suppress(PermissionError, NotImplementedError):
+        if hasattr(os, "fchmod"):
+            os.fchmod(handle, mode)
+        else:
+            os.chmod(temporary, mode)
 
 
 @contextmanager

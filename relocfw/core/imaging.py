@@ -14,10 +14,11 @@ from relocfw.core.errors import DataError
 from relocfw.core.interfaces import crop_at, crop_side_and_span
 from relocfw.core.values import Crop
 
-# The largest image read_rgb decodes: 2^26 pixels (8192 x 8192), 192 MiB as RGB. A
-# header may announce any size (70000 x 70000 takes 14 GiB to decode), and OpenCV's
-# own limit (2^30) fails with a cv2.error that names no file.
-MAX_IMAGE_PIXELS = 2**26
+# The largest image read_rgb decodes: OpenCV's own limit, 2^30 pixels (3 GiB as RGB;
+# a 200 MP photo is well inside). Checked on the header before decoding, so an image
+# announcing more (70000 x 70000) is one DataError naming the file, not OpenCV's
+# cv2.error that names none.
+MAX_IMAGE_PIXELS = 2**30
 
 
 def read_rgb(path: Path) -> np.ndarray:

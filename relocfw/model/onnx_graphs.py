@@ -148,11 +148,12 @@ def check_images(count: int, height: int, width: int, rng: np.random.Generator) 
     """`count` images [count, 3, height, width] a graph file cannot predict, as the
     pipeline feeds them: uint8 pixels / 255 (relocfw.core.imaging.to_network_input).
 
-    `rng` is fresh per open (seeded by the OS), so no file can hold its check's answers;
-    the pixels are what real crops hold, so a graph cannot tell a check from a query by
-    their values (continuous pixel values are something a forged graph could test for).
-    Every other image is smooth random shading, not noise, so neither kind's statistics
-    alone mark an image as a check.
+    `rng` is fresh per open (seeded by the OS), so no file can hold its check's answers,
+    and the pixels are whole levels / 255 as a real crop's are (continuous values are
+    something a forged graph could test for). Every other image is smooth random
+    shading, not noise. This raises the bar, it proves nothing: noise and smooth
+    shading still differ from photographs in their gradients, so a graph built to
+    tell them apart could still answer checks honestly and queries falsely.
     """
     pixels = np.empty((count, 3, height, width), dtype=np.uint8)
     for number in range(count):

@@ -9,6 +9,7 @@ be a registered plugin).
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -28,6 +29,8 @@ from relocfw.model.state_checks import first_non_finite, state_mismatch, tensor_
 # 256), far below sizes that overflow, or run for hours, before anything checks them.
 # The weights bound the rest (stored_backbone).
 MAX_BACKBONE_OPTION = 65536
+# The option names that say a size, the ones MAX_BACKBONE_OPTION caps.
+SIZE_OPTION = re.compile(r"size|dim|channels|samples|hidden|width|depth|layers", re.IGNORECASE)
 
 # How a part (relocfw's or a third party's) may fail on crafted options or state.
 PART_FAILURES = (
@@ -62,7 +65,7 @@ def building(path: Path, group: str) -> Iterator[None]:
 def stored_backbone(payload: dict[str, Any], backbone_class: type, path: Path) -> Backbone:
     """The file's network with its weights, its options checked before it is built.
 
-    No option may hold a number above MAX_BACKBONE_OPTION, and the shapes the options
+    No size option may hold a number above MAX_BACKBONE_OPTION, and the shapes the options
     make (built on the meta device: no memory) must be the weights': crafted options
     (feature_dim=10**9) are refused before they allocate, and options that fit
     allocate no more than the file holds. Weights holding NaN or infinity are refused
@@ -87,9 +90,16 @@ def stored_backbone(payload: dict[str, Any], backbone_class: type, path: Path) -
 
 
 def oversized_option(options: dict[str, Any]) -> str | None:
-    """The first option (name=value) holding a number above MAX_BACKBONE_OPTION,
-    itself or in a list; None if none does."""
+    """The first size option (name=value) holding a number above MAX_BACKBONE_OPTION,
+    itself or in a list; None if none does.
+
+    Only options named as sizes (SIZE_OPTION: input_size, feature_dim, mc_samples,
+    decoder_channels, a plugin's hidden_dim, ...) are capped: a third party's seed
+    or step count may rightly be large, and the weights bound what allocates
+    memory anyway (state_mismatch on the meta device)."""
     for name, value in options.items():
+        if not SIZE_OPTION.search(name):
+            continue
         for number in value if isinstance(value, list | tuple) else [value]:
             if isinstance(number, int | float) and not abs(number) <= MAX_BACKBONE_OPTION:
                 return f"{name}={value!r}"

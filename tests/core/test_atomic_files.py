@@ -39,3 +39,14 @@ def test_the_old_import_path_names_the_same_functions():
 
     for name in ("atomic_write", "write_text_atomic", "remove_stale_temporaries"):
         assert getattr(checkpoints, name) is getattr(atomic_files, name)
+
+
+def test_a_file_system_that_refuses_a_mode_change_still_gets_the_file(tmp_path, monkeypatch):
+    # exFAT and vfat answer EPERM to a chmod that changes the r/x bits: the data must land.
+    def refuse(*_):
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(atomic_files.os, "fchmod", refuse)
+    monkeypatch.setattr(atomic_files.os, "chmod", refuse)
+    write_text_atomic("kept", tmp_path / "results.txt")
+    assert (tmp_path / "results.txt").read_text() == "kept"

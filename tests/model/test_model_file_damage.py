@@ -14,7 +14,7 @@ import torch
 
 from relocfw import Pose, Relocalizer, load_model, save_model
 from relocfw.core.errors import DataError
-from relocfw.model import pose_head
+from relocfw.model import pose_head, stored_parts
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.kmeans_index import KMeansIndex
@@ -248,3 +248,9 @@ def test_a_crafted_sequence_hidden_is_refused_without_building_the_network(
     with pytest.raises(DataError, match=rf"do not fit refine.hidden={hidden}"):
         sequence_refiner.SequenceRefiner(window=3, hidden=hidden).load_state(sequence_state)
     assert time.perf_counter() - started < 5
+
+
+def test_only_size_options_are_capped():
+    # A plugin's seed or step count may rightly be large; sizes are what allocate.
+    assert stored_parts.oversized_option({"seed": 123456789, "steps": 10**6}) is None
+    assert stored_parts.oversized_option({"hidden_dim": 10**6}) == "hidden_dim=1000000"
