@@ -242,5 +242,7 @@ def check_pretrained(cfg: DictConfig, choices: Mapping[str, str], backbone: Back
 def dataset_settings(cfg: DictConfig) -> dict[str, Any]:
     """What identifies the data: the dataset options without where caches live."""
     values = OmegaConf.to_container(cfg.dataset, resolve=True)
-    # metric only names the unit of the reports: the same poses train the same model.
-    return {k: v for k, v in values.items() if k not in ("cache_dir", "quiet", "metric")}
+    # metric only names the unit of the reports, and depth_units_per_metre only how the
+    # structure stage reads depth: the same images and poses train the same model.
+    left_out = ("cache_dir", "quiet", "metric", "depth_units_per_metre")
+    return {k: v for k, v in values.items() if k not in left_out}

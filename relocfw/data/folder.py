@@ -9,18 +9,31 @@ separated TXT) per split, e.g.
 Columns are found by name (any order, case-insensitive): the image column is
 `image`, `file`, `filename` or `path`; positions `x y z` (or `tx ty tz`); the
 camera-to-world rotation `qw qx qy qz`. Image paths are relative to the folder.
+
+A `camera-intrinsics.txt` in the folder (7-Scenes' format: K, sized like the first
+image) gives every frame its camera, which refine=features needs; without one the
+frames have none (no default is guessed). The folder has no depth maps.
+
+Positions are metres only when the poses are metric and in one world frame;
+`dataset.metric: false` says they are not, as for COLMAP (relocfw.report.units).
 """
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import checked_quaternion
 from relocfw.core.values import Pose
 from relocfw.data.frames import Frame, claim_frame_name
+from relocfw.data.intrinsics import INTRINSICS_FILE, read_camera_for_images
 from relocfw.data.on_error import OnError
+from relocfw.data.options import metric_option
 from relocfw.data.text import data_lines, numbers
+
+# What reports say first when dataset.metric is false (relocfw.report.units.unit_of).
+UNITS_NOTE = "positions are in the poses files' own units (dataset.metric=false), not metres"
 
 COLUMN_NAMES = {
     "image": ("image", "file", "filename", "path"),
@@ -99,7 +112,16 @@ class PoseFolder:
         train: poses file of the map images (default train.csv).
         test: poses file of the query images (default test.csv).
         on_error: "fail" or "skip" (bad lines left out and listed).
+        metric: whether the poses are metres in one world frame; False makes reports
+            say model units, as COLMAP's option does.
+
+    Attributes:
+        metric: read by relocfw.report.units.unit_of.
+        units_note: one line for the reports of a non-metric run; "" when metric.
     """
+
+    metric: bool = True
+    units_note: str = ""
 
     def __init__(
         self,
@@ -107,7 +129,10 @@ class PoseFolder:
         train: str = "train.csv",
         test: str = "test.csv",
         on_error: str = "fail",
+        metric: bool = True,
     ) -> None:
+        self.metric = metric_option(metric)
+        self.units_note = "" if self.metric else UNITS_NOTE
         if root is None:
             raise ConfigError("dataset.root is not set: pass dataset.root=DIR")
         self.root = Path(root).expanduser()
@@ -117,7 +142,12 @@ class PoseFolder:
         self.on_error = OnError(on_error)
 
     def frames(self, split: str) -> list[Frame]:
-        return load_pose_table(self.root / self.files[split], self.root, self.on_error)
+        frames = load_pose_table(self.root / self.files[split], self.root, self.on_error)
+        intrinsics = self.root / INTRINSICS_FILE
+        if not frames or not intrinsics.is_file():
+            return frames
+        camera = read_camera_for_images(intrinsics, [f.image_path for f in frames])
+        return [replace(frame, camera=camera) for frame in frames]
 
     def split_source(self, split: str) -> str:
         """What lists the split's frames, for messages: its poses file."""

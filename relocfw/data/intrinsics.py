@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -15,6 +16,35 @@ from relocfw.data.text import data_lines, numbers
 
 # The file name 7-Scenes gives K; the other loaders read the same name and format.
 INTRINSICS_FILE = "camera-intrinsics.txt"
+# The folders whose default camera has been noted in this process: one note each,
+# however often a split is loaded (compare loads it once per method).
+NOTED_FOLDERS: set[Path] = set()
+
+
+def note_default_camera(folder: Path, camera: PinholeCamera, what: str) -> None:
+    """One line on stderr: `folder` has no intrinsics file, so `camera` is used.
+
+    Wrong intrinsics never fail a run; they only make refine=features' poses worse.
+    So a loader that falls back to a dataset's nominal camera says so, naming the
+    folder, the values and the file that would replace them. Printed as the CLI's
+    other notes are (stderr, "note:"), once per folder per process.
+
+    Args:
+        folder: the folder that lacks camera-intrinsics.txt.
+        camera: the camera used instead.
+        what: where its values come from, e.g. "the ROS default intrinsics".
+    """
+    folder = Path(folder)
+    if folder in NOTED_FOLDERS:
+        return
+    NOTED_FOLDERS.add(folder)
+    print(
+        f"note: {folder}: no {INTRINSICS_FILE}, so {what} are used: fx={camera.fx:g} "
+        f"fy={camera.fy:g} cx={camera.cx:g} cy={camera.cy:g} for "
+        f"{camera.width} x {camera.height} images (put your camera's K in "
+        f"{folder / INTRINSICS_FILE})",
+        file=sys.stderr,
+    )
 
 
 def read_intrinsics_matrix(path: str | Path, width: int, height: int) -> PinholeCamera:

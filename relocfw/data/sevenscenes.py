@@ -5,7 +5,8 @@ Each frame also gets its camera and, where the folder has it, its depth map:
                 root (the folder above it, where 7-Scenes' archives put it), sized like
                 the first image of the split; without either file, 7-Scenes' nominal
                 Kinect camera (585, 585, 320, 240 for 640 x 480), without reading an
-                image (so a copy scaled to another size needs its own file).
+                image (so a copy scaled to another size needs its own file), with one
+                note on stderr naming the folder and the values.
     depth_path  `frame-NNNNNN.depth.png` beside the colour image when it exists (16-bit,
                 millimetres; copies without depth load as before, with None).
 """
@@ -24,7 +25,7 @@ from relocfw.core.geometry import pose_from_matrix
 from relocfw.core.values import Pose
 from relocfw.data.depth import depth_path_of
 from relocfw.data.frames import Frame
-from relocfw.data.intrinsics import INTRINSICS_FILE, read_camera_for_images
+from relocfw.data.intrinsics import INTRINSICS_FILE, note_default_camera, read_camera_for_images
 from relocfw.data.on_error import OnError
 
 SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
@@ -116,6 +117,7 @@ def scene_camera(folder: Path, images: Sequence[Path]) -> PinholeCamera:
     """
     path = intrinsics_file(folder)
     if path is None:
+        note_default_camera(folder, SEVENSCENES_DEFAULT, "7-Scenes' nominal Kinect intrinsics")
         return SEVENSCENES_DEFAULT
     return read_camera_for_images(path, images)
 

@@ -9,12 +9,22 @@ Each frame also gets a camera and, where the sequence has one, a depth map:
                 sized like the first image), else TUM's documented intrinsics of the
                 sensor the folder is named after (freiburg1, freiburg2, freiburg3),
                 else the ROS default (525, 525, 319.5, 239.5), all for 640 x 480.
+                Either fallback prints one note on stderr naming the folder and the
+                values, since a camera of one's own is rarely either of them.
                 freiburg1 and freiburg2 images also have lens distortion that these
                 pinhole values leave out, as TUM's own tools do.
     depth_path  the `depth.txt` entry (`timestamp filename`) nearest the image's
                 timestamp within DEPTH_TIME_DIFFERENCE; TUM's depth PNGs are registered
-                to the colour camera and hold 5000 units per metre (not millimetres),
+                to the colour camera and hold 5000 units per metre (not millimetres).
+                `dataset.depth_units_per_metre` says otherwise for another recorder
+                (1000 for a millimetre PNG, as a RealSense writes); the value is
                 carried as `Frame.depth_units_per_metre`.
+
+Positions are metres only when every lap's trajectory is metric and in one world
+frame (TUM's motion-capture ground truth is; monocular ORB-SLAM2's is neither: its
+scale is arbitrary and each run has its own frame). `dataset.metric: false` says the
+positions are not metres, as COLMAP's option does: reports name model units and leave
+out the metre bands, and refine=features refuses depth maps (relocfw.report.units).
 """
 
 from __future__ import annotations
@@ -31,8 +41,9 @@ from relocfw.core.geometry import checked_quaternion
 from relocfw.core.values import Pose
 from relocfw.data.depth import TUM_UNITS_PER_METRE
 from relocfw.data.frames import Frame
-from relocfw.data.intrinsics import INTRINSICS_FILE, read_camera_for_images
+from relocfw.data.intrinsics import INTRINSICS_FILE, note_default_camera, read_camera_for_images
 from relocfw.data.on_error import OnError
+from relocfw.data.options import depth_units_option, metric_option
 from relocfw.data.text import data_lines, numbers
 
 # TUM RGB-D's documented colour-camera intrinsics by sensor (the "file formats" page
@@ -47,6 +58,8 @@ ROS_DEFAULT_CAMERA = PinholeCamera(525.0, 525.0, 319.5, 239.5, 640, 480)
 SENSOR_NAME = re.compile(r"freiburg[123]", re.IGNORECASE)
 # As TUM's associate.py: colour and depth are taken 1/30 s apart at most.
 DEPTH_TIME_DIFFERENCE = 0.02
+# What reports say first when dataset.metric is false (relocfw.report.units.unit_of).
+UNITS_NOTE = "positions are in the trajectory's own units (dataset.metric=false), not metres"
 
 
 def tum_quaternion_to_relocfw(qx: float, qy: float, qz: float, qw: float) -> list[float]:
@@ -110,6 +123,9 @@ def associate(
 def sequence_camera(folder: Path, images: Sequence[Path]) -> PinholeCamera:
     """The camera of a sequence: its intrinsics file, else its sensor's, else ROS's.
 
+    A fallback prints one note on stderr (note_default_camera): wrong intrinsics do
+    not fail, they only make refine=features' poses worse, so they must not be silent.
+
     Args:
         folder: the sequence folder; its name (e.g. rgbd_dataset_freiburg1_xyz) names
             the sensor.
@@ -122,7 +138,12 @@ def sequence_camera(folder: Path, images: Sequence[Path]) -> PinholeCamera:
     if path.is_file():
         return read_camera_for_images(path, images)
     sensor = SENSOR_NAME.search(folder.name)
-    return TUM_CAMERAS[sensor.group().lower()] if sensor else ROS_DEFAULT_CAMERA
+    if sensor:
+        name = sensor.group().lower()
+        note_default_camera(folder, TUM_CAMERAS[name], f"TUM's {name} intrinsics")
+        return TUM_CAMERAS[name]
+    note_default_camera(folder, ROS_DEFAULT_CAMERA, "the ROS default intrinsics")
+    return ROS_DEFAULT_CAMERA
 
 
 def depth_paths(
@@ -154,11 +175,12 @@ def load_tum_sequence(
     trajectory: str,
     max_time_difference: float,
     on_error: OnError | None = None,
+    depth_units_per_metre: float = TUM_UNITS_PER_METRE,
 ) -> tuple[list[Frame], int]:
     """Frames of one recording, and how many images had no pose close enough.
 
     Each frame carries the sequence's camera and its depth map where depth.txt has
-    one close in time (see the module's docstring).
+    one close in time, with `depth_units_per_metre` (see the module's docstring).
     """
     folder = Path(folder)
     if not folder.is_dir():
@@ -181,7 +203,7 @@ def load_tum_sequence(
             poses[m],
             camera=camera,
             depth_path=depth,
-            depth_units_per_metre=TUM_UNITS_PER_METRE,
+            depth_units_per_metre=depth_units_per_metre,
         )
         for (name, m), depth in zip(posed, depths, strict=True)
     ]
@@ -199,7 +221,18 @@ class TumDataset:
             or KeyFrameTrajectory.txt.
         max_time_difference: seconds between an image and its pose at most.
         on_error: "fail" or "skip" (bad lines left out and listed).
+        depth_units_per_metre: what one metre is stored as in the depth PNGs: 5000
+            (TUM RGB-D's recorder), 1000 (millimetres, e.g. a RealSense).
+        metric: whether the trajectories are metres in one world frame across laps;
+            False (e.g. monocular ORB-SLAM2) makes reports say model units.
+
+    Attributes:
+        metric: read by relocfw.report.units.unit_of, as COLMAP's.
+        units_note: one line for the reports of a non-metric run; "" when metric.
     """
+
+    metric: bool = True
+    units_note: str = ""
 
     def __init__(
         self,
@@ -209,7 +242,13 @@ class TumDataset:
         trajectory: str = "groundtruth.txt",
         max_time_difference: float = 0.02,
         on_error: str = "fail",
+        depth_units_per_metre: float = TUM_UNITS_PER_METRE,
+        metric: bool = True,
     ) -> None:
+        # Options first, so a bad one is named whatever the folder holds.
+        self.depth_units_per_metre = depth_units_option(depth_units_per_metre)
+        self.metric = metric_option(metric)
+        self.units_note = "" if self.metric else UNITS_NOTE
         if root is None or not Path(root).expanduser().is_dir():
             raise DataError(f"dataset.root: folder not found: {root}")
         if not train or not test:
@@ -227,7 +266,11 @@ class TumDataset:
         frames: list[Frame] = []
         for sequence in self.splits[split]:
             found, unmatched = load_tum_sequence(
-                self.root / sequence, self.trajectory, self.max_time_difference, self.on_error
+                self.root / sequence,
+                self.trajectory,
+                self.max_time_difference,
+                self.on_error,
+                self.depth_units_per_metre,
             )
             frames += found
             self.unmatched += unmatched
