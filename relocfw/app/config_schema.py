@@ -101,10 +101,19 @@ class QueryConfig:
     queries_at_once: Optional[int] = None  # noqa: UP045
 
 
+class OnError(Enum):
+    """What task=localize does with a frame that cannot be decoded: stop or list it."""
+
+    fail = "fail"
+    skip = "skip"
+
+
 @dataclass
 class LocalizeConfig:
     model: Optional[str] = None  # noqa: UP045
     images: Optional[str] = None  # noqa: UP045
+    topic: Optional[str] = None  # noqa: UP045
+    on_error: OnError = OnError.fail
 
 
 @dataclass

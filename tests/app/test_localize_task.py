@@ -167,3 +167,32 @@ def test_rows_before_a_failing_image_are_on_disk(tmp_path):
     localize_images(GreyLevelRelocalizer(), paths, run_dir, quiet=True)
     assert len(tum_rows(run_dir)) == 6
     assert not any(run_dir.glob("*.partial"))
+
+
+def test_a_bad_image_mid_group_keeps_the_rows_of_the_images_before_it(tmp_path):
+    # Groups of two; image 3 is corrupt: image 2, its group-mate, is answered first.
+    paths = write_images(tmp_path / "images", [f"frame-{i}.png" for i in range(5)])
+    paths[3].write_bytes(b"not a png")
+    with pytest.raises(DataError, match="frame-3.png"):
+        localize_images(GreyLevelRelocalizer(), paths, tmp_path / "run", quiet=True)
+    assert [row[0] for row in tum_rows(tmp_path / "run", "poses.txt.partial")] == ["0", "1", "2"]
+
+
+def test_under_skip_a_bad_image_is_listed_and_the_rest_answered(tmp_path, capsys):
+    paths = write_images(tmp_path / "images", [f"frame-{i}.png" for i in range(5)])
+    paths[3].write_bytes(b"not a png")
+    run_dir = tmp_path / "run"
+    done = localize_images(GreyLevelRelocalizer(), paths, run_dir, quiet=True, on_error="skip")
+    assert (done.localized, done.skipped) == (4, 1)
+    # Positions stay the images' places in the list: the timestamps do not shift.
+    assert [row[0] for row in tum_rows(run_dir)] == ["0", "1", "2", "4"]
+    skipped = (run_dir / "skipped.txt").read_text().splitlines()
+    assert len(skipped) == 1 and str(paths[3]) in skipped[0]
+    assert "1 frames could not be decoded" in capsys.readouterr().err
+    assert not any(run_dir.glob("*.partial"))
+
+
+def test_an_unknown_on_error_is_a_config_error(tmp_path):
+    paths = write_images(tmp_path / "images", ["0.png"])
+    with pytest.raises(ConfigError, match=r"^localize\.on_error must be"):
+        localize_images(GreyLevelRelocalizer(), paths, tmp_path / "run", on_error="ignore")

@@ -1,37 +1,63 @@
-"""task=localize: poses of new images from a saved model (localize.model, localize.images).
+"""task=localize: poses of new frames from a saved model (localize.model, localize.images).
 
 The model file brings its network, map, crop search and query options; each query.*
 value that is set (not null) replaces the file's. The network runs on the configured
 engine (relocfw.app.engines), its graphs cached beside the model file.
+
+`localize.images` names image files (a file, folder or glob), a video or a ROS bag
+(with `localize.topic`); relocfw.data.streams reads each as one stream of frames,
+decoded one at a time. Answers are written as they are made (AnswerFiles), so memory
+stays flat and a run that stops keeps every pose it made. A frame that cannot be
+decoded stops the run (`localize.on_error=fail`) or is listed in skipped.txt
+(`localize.on_error=skip`).
 """
 
 from __future__ import annotations
 
-import csv
-import glob
-import os
-import re
+import itertools
 import sys
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+from relocfw.app.answer_files import AnswerFiles
+from relocfw.app.config_schema import name_of
 from relocfw.app.engines import on_engine
 from relocfw.app.methods import in_query_terms, query_values
 from relocfw.core.errors import ConfigError, DataError
-from relocfw.core.imaging import read_rgb
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.progress import Progress
 from relocfw.core.values import Localization
+from relocfw.data.streams import (
+    StreamFrame,
+    count_frames,
+    file_frames,
+    find_images,
+    open_frames,
+    source_kind,
+    timestamp_of,
+)
 from relocfw.model.distributed import World
 from relocfw.model.model_file import load_model
-from relocfw.report.evaluation import ANSWER_COLUMNS, POSE_COLUMNS, answer_cells
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-COLUMNS = ("image", "timestamp", *POSE_COLUMNS, *ANSWER_COLUMNS)
-TIMESTAMP_NAME = re.compile(r"\d+(\.\d+)?")
+ON_ERROR = ("fail", "skip")
+# find_images and timestamp_of live in relocfw.data.streams now; importable from here too.
+__all__ = [
+    "AnswerFiles",
+    "LocalizeRun",
+    "find_images",
+    "load_for_localize",
+    "localize_frames",
+    "localize_images",
+    "model_file",
+    "run",
+    "timestamp_of",
+]
 
 
 def model_file(value: str | None, key: str) -> Path:
@@ -41,117 +67,32 @@ def model_file(value: str | None, key: str) -> Path:
     return Path(value).expanduser()
 
 
-def find_images(pattern: str) -> list[Path]:
-    """Images named by a file, a folder (every image in it) or a glob pattern."""
-    if not pattern:
-        raise ConfigError(
-            "localize.images is not set: pass localize.images=FILE, localize.images=DIR "
-            "or localize.images='DIR/*.png'"
-        )
-    path = Path(pattern).expanduser()
-    if path.is_dir():
-        found = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-    elif path.is_file():
-        found = [path]
-    else:
-        found = sorted(Path(p) for p in glob.glob(str(path)))
-    if not found:
-        raise DataError(f"localize.images={pattern}: no image files found")
-    # A 7-Scenes or synthetic sequence keeps 16-bit depth maps beside its colour
-    # images; read as colour they would be localized as nonsense, not refused.
-    depth = [p for p in found if p.name.lower().endswith(".depth.png")]
-    if depth:
-        raise DataError(
-            f"localize.images={pattern}: {len(depth)} of the {len(found)} files are depth "
-            f"maps ({depth[0].name}, ...); name the colour images, e.g. "
-            f"localize.images='{depth[0].parent}/*.color.png'"
-        )
-    return found
+@dataclass
+class Waiting:
+    """A decoded frame waiting for its group: its name for the refiner and the
+    seconds its decoding took."""
+
+    frame: StreamFrame
+    name: str
+    decode_seconds: float
 
 
-def timestamp_of(path: Path, position: int) -> str:
-    """The file name's number when it is one (TUM names images by time), else its index.
-
-    Only plain decimals count (digits, one optional fraction): `float` would also take
-    names such as "nan", "inf" or "1_000", which TUM tools cannot read back.
-    """
-    return path.stem if TIMESTAMP_NAME.fullmatch(path.stem) else str(position)
-
-
-PARTIAL_SUFFIX = ".partial"
-
-
-class AnswerFiles:
-    """poses.txt (TUM format) and localization.csv, written one row per answer as it
-    is made and flushed.
-
-    The rows go to `poses.txt.partial` and `localization.csv.partial` first: a run
-    that stops at image 900 (a crash, a kill, a bad file) keeps the 899 rows before
-    it there, and a finished run renames them over the final names, so files a
-    previous run left under those names are never replaced by a half-written one.
-    """
-
-    def __init__(self, run_dir: Path) -> None:
-        self.poses_path = Path(run_dir) / "poses.txt"
-        self.table_path = Path(run_dir) / "localization.csv"
-        Path(run_dir).mkdir(parents=True, exist_ok=True)
-        self.poses = partial_of(self.poses_path).open("w", encoding="utf-8")
-        self.table = partial_of(self.table_path).open("w", encoding="utf-8", newline="")
-        self.writer = csv.writer(self.table)
-        self.written = 0
-        self.poses.write("# timestamp tx ty tz qx qy qz qw (camera-to-world)\n")
-        self.writer.writerow(COLUMNS)
-        self.flush()
-
-    def write(self, path: Path, position: int, answer: Localization) -> None:
-        """One image's answer: a line of poses.txt and a row of localization.csv."""
-        stamp = timestamp_of(path, position)
-        (x, y, z), (qw, qx, qy, qz) = answer.pose.position, answer.pose.quaternion
-        self.poses.write(" ".join([stamp] + [f"{v:.9f}" for v in (x, y, z, qx, qy, qz, qw)]))
-        self.poses.write("\n")
-        self.writer.writerow(
-            [str(path), stamp]
-            + [f"{v:.9f}" for v in (x, y, z, qw, qx, qy, qz)]
-            + answer_cells(answer)
-        )
-        self.written += 1
-
-    def flush(self) -> None:
-        """Hand what is written to the system: a crash or kill of this process after
-        this loses none of it (no fsync per group: that would cost a disk round trip
-        per image, and only a power cut needs it)."""
-        for file in (self.poses, self.table):
-            file.flush()
-
-    def close(self, finished: bool) -> None:
-        """Flush, sync to disk and close both files; a finished run's take their final
-        names, a stopped run's stay `.partial` and one line on stderr says where."""
-        for file in (self.poses, self.table):
-            file.flush()
-            os.fsync(file.fileno())
-            file.close()
-        if finished:
-            for path in (self.poses_path, self.table_path):
-                os.replace(partial_of(path), path)
-            return
-        print(
-            f"localize: stopped after {self.written} images; their answers are in "
-            f"{partial_of(self.poses_path)} and {partial_of(self.table_path)}",
-            file=sys.stderr,
-        )
-
-
-def partial_of(path: Path) -> Path:
-    """Where `path` is written until the run finishes."""
-    return path.with_name(path.name + PARTIAL_SUFFIX)
+def refiner_name(frame: StreamFrame, position: int, recording: str | None) -> str:
+    """The frame's name for a refiner that reads recordings (refine=sequence): for image
+    files their folder and stem, as before; for a stream its own name and position."""
+    if recording is None:
+        path = Path(frame.name)
+        return f"{path.parent.name}/{path.stem}"
+    return f"{recording}/{position}"
 
 
 def localize_group(
-    relocalizer: Relocalizer, paths: list[Path], group: int, refined: bool
+    relocalizer: Relocalizer, waiting: list[Waiting], group: int
 ) -> list[Localization]:
-    """The answers for one group of images, read here so memory stays flat."""
-    pixels = [read_rgb(path) for path in paths]
-    names = [f"{path.parent.name}/{path.stem}" for path in paths]
+    """The answers for one group of frames."""
+    pixels = [w.frame.image for w in waiting]
+    names = [w.name for w in waiting]
+    refined = getattr(relocalizer, "refiner", None) is not None
     if group == 1 and refined:
         return [relocalizer.localize(pixels[0], name=names[0])]
     if group == 1:
@@ -161,36 +102,103 @@ def localize_group(
     return relocalizer.localize_many(pixels, group)
 
 
-def localize_images(
-    relocalizer: Relocalizer, images: list[Path], run_dir: Path, quiet: bool = False
-) -> list[Localization]:
-    """Localize every image; write poses.txt (TUM format) and localization.csv as it
-    goes (see AnswerFiles: a run that stops keeps the rows it made, as `.partial`)."""
-    progress = Progress(len(images), "localizing", quiet=quiet)
-    answers: list[Localization] = []
-    # Any object with `localize` works; a Relocalizer's options say how many at once.
+@dataclass(frozen=True)
+class LocalizeRun:
+    """What a localize run did: frames answered and frames skipped (their messages are
+    in skipped.txt)."""
+
+    localized: int
+    skipped: int
+
+
+def localize_frames(
+    relocalizer: Relocalizer,
+    frames: Iterable[StreamFrame],
+    run_dir: Path,
+    quiet: bool = False,
+    total: int | None = None,
+    on_error: str = "fail",
+    recording: str | None = None,
+) -> LocalizeRun:
+    """Localize every frame as it comes; write poses.txt (TUM format), localization.csv
+    and skipped.txt as it goes (see AnswerFiles: a run that stops keeps its rows).
+
+    Args:
+        relocalizer: any object with `localize` (and `localize_many` for groups); a
+            Relocalizer's options say how many frames at once (queries_at_once).
+        frames: in stream order, decoded as they are reached.
+        total: frames expected, for the progress bar; None when unknown.
+        on_error: "fail": a frame that cannot be decoded stops the run with one
+            DataError naming it, after the frames before it are answered and written;
+            "skip": it is listed in skipped.txt and the run goes on.
+        recording: the stream's name for a refiner that reads recordings
+            (refine=sequence); None for image files, whose folders name theirs.
+    """
+    if on_error not in ON_ERROR:
+        raise ConfigError(f"localize.on_error must be 'fail' or 'skip', got {on_error!r}")
+    progress = Progress(total, "localizing", quiet=quiet, unit="frames")
     options = getattr(relocalizer, "options", None)
     group = getattr(options, "queries_at_once", 1)
-    # A refiner that reads a query's recording (refine=sequence) gets each image's
-    # folder as its recording and the images in the order given (sorted by name).
-    refined = getattr(relocalizer, "refiner", None) is not None
     files = AnswerFiles(run_dir)
+    waiting: list[Waiting] = []
+
+    def answer_waiting() -> None:
+        if not waiting:
+            return
+        found = localize_group(relocalizer, waiting, group)
+        for item, answer in zip(waiting, found, strict=True):
+            files.write(item.frame, answer, 1000.0 * (item.decode_seconds + answer.seconds))
+        files.flush()
+        progress.advance(len(waiting))
+        waiting.clear()
+
     finished = False
+    stream = iter(frames)
     try:
-        for start in range(0, len(images), group):
-            paths = images[start : start + group]
-            found = localize_group(relocalizer, paths, group, refined)
-            for position, (path, answer) in enumerate(zip(paths, found, strict=True), start):
-                files.write(path, position, answer)
-            files.flush()
-            answers += found
-            progress.advance(len(paths))
+        for position in itertools.count():
+            started = time.perf_counter()
+            frame = next(stream, None)
+            if frame is None:
+                break
+            if frame.error is not None or frame.image is None:
+                if on_error == "fail":
+                    answer_waiting()  # the frames before it keep their rows
+                    raise DataError(frame.error or f"{frame.name}: no image")
+                files.skip(frame)
+                progress.advance(1)
+                continue
+            name = refiner_name(frame, position, recording)
+            waiting.append(Waiting(frame, name, time.perf_counter() - started))
+            if len(waiting) == group:
+                answer_waiting()
+        answer_waiting()
         finished = True
     finally:
         files.close(finished)
         progress.close()
-    print(f"{len(answers)} images localized: {files.poses_path}, {files.table_path}")
-    return answers
+        close = getattr(stream, "close", None)  # a generator: its source (video) released
+        if close is not None:
+            close()
+    print(f"{files.written} frames localized: {files.poses_path}, {files.table_path}")
+    if files.skipped:
+        print(
+            f"localize: {files.skipped} frames could not be decoded and were skipped "
+            f"(localize.on_error=skip): {files.skipped_path}",
+            file=sys.stderr,
+        )
+    return LocalizeRun(files.written, files.skipped)
+
+
+def localize_images(
+    relocalizer: Relocalizer,
+    images: list[Path],
+    run_dir: Path,
+    quiet: bool = False,
+    on_error: str = "fail",
+) -> LocalizeRun:
+    """Localize image files in the order given (see localize_frames)."""
+    frames = file_frames([Path(p) for p in images])
+    return localize_frames(relocalizer, frames, run_dir, quiet, len(images), on_error)
 
 
 def load_for_localize(cfg: DictConfig, device: torch.device) -> Relocalizer:
@@ -206,6 +214,12 @@ def load_for_localize(cfg: DictConfig, device: torch.device) -> Relocalizer:
 
 def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     relocalizer = load_for_localize(cfg, device)
-    images = find_images(str(cfg.localize.images or ""))
+    spec = str(cfg.localize.images or "")
+    topic = str(cfg.localize.topic) if cfg.localize.topic else None
+    frames = open_frames(spec, topic)
+    total = count_frames(spec, topic)
+    # A stream (video, bag) is one recording, named by its file; image files by folder.
+    recording = None if source_kind(spec) == "files" else Path(spec).name
     run_dir = Path(HydraConfig.get().runtime.output_dir)
-    localize_images(relocalizer, images, run_dir, bool(cfg.quiet))
+    on_error = str(name_of(cfg.localize.on_error))
+    localize_frames(relocalizer, frames, run_dir, bool(cfg.quiet), total, on_error, recording)
