@@ -18,6 +18,10 @@ map image and its nearest other map image (the bound's job is to skip partners
 standing almost where the image stands, and in a map of unknown scale "almost" can
 only be told from how far apart its images usually are). structure=depth is refused
 there: depth maps are in metres and cannot be lifted into poses that are not.
+
+Model files (format 5) keep the fitted refiner whole (`state` / `load_state`: the map's
+structure as flat arrays, relocfw.structure.map_state, the keyframe descriptors and
+the query options), so a loaded model needs no map image, depth file or cache.
 """
 
 from __future__ import annotations
@@ -29,9 +33,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from relocfw.core.camera import PinholeCamera
-from relocfw.core.errors import ConfigError
+from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
 from relocfw.core.standardise import ZScore, check_features, k_nearest
@@ -44,6 +49,7 @@ from relocfw.structure import (
     localize_against,
     structure_key,
 )
+from relocfw.structure.map_state import checked_tensor, map_of_state, map_state
 from relocfw.structure.structure_map import median_camera_spacing
 
 STRUCTURES = ("depth", "triangulated")
@@ -51,6 +57,11 @@ KEYFRAMES = ("descriptor", "pose")
 # On a map that is not metric, the smallest triangulation baseline as a share of the
 # median distance between neighbouring map images (see the module's note).
 NON_METRIC_BASELINE_SHARE = 0.5
+# The query options a state keeps (the fitted refiner's, so a file saved without its
+# options still answers as the run did), integers and numbers.
+STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4}  # and their least
+STATE_NUMBERS = ("ratio", "max_error_px")
+STATE_LABEL = "refine=features state"
 NO_DEPTH_HINT = (
     "use refine=features_rgb, which triangulates the map's points from its images and poses"
 )
@@ -202,6 +213,57 @@ class FeaturesRefiner(PoseRefiner):
         structure = getattr(self, "structure", None)
         return tuple(structure.skipped_views) if structure is not None else ()
 
+    def state(self) -> dict[str, torch.Tensor]:
+        """Everything a query uses, as plain tensors (relocfw.structure.map_state: every
+        map image's uint8 descriptors, keypoints, the 3-D points of the keypoints that
+        have one, poses and cameras), plus the standardisation and the z-scored map
+        descriptors that keyframes are retrieved by, and the query options. A refiner
+        loaded from it needs no map image, depth file or cache."""
+        if not hasattr(self, "structure"):
+            raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
+        options = {key: torch.tensor(int(getattr(self, key))) for key in STATE_INTEGERS}
+        options |= {
+            key: torch.tensor(float(getattr(self, key)), dtype=torch.float64)
+            for key in STATE_NUMBERS
+        }
+        return {
+            **map_state(self.structure),
+            **self.zscore.state(),
+            "keyframe_descriptors": torch.from_numpy(np.array(self.points, dtype=np.float64)),
+            "keyframes": torch.tensor(KEYFRAMES.index(self.keyframes)),
+            **options,
+        }
+
+    def load_state(self, state: dict[str, torch.Tensor]) -> None:
+        """What `state` returned: the refiner is then fitted. Every tensor is checked
+        before anything is kept (a model file is data from anyone); a fault is one
+        DataError naming the tensor."""
+        structure = map_of_state(state, STATE_LABEL)
+        keyframe_points = checked_tensor(state, "keyframe_descriptors", torch.float64, STATE_LABEL)
+        if keyframe_points.ndim != 2 or len(keyframe_points) != len(structure):
+            raise DataError(
+                f"{STATE_LABEL}: keyframe_descriptors must be [{len(structure)}, D], one "
+                f"row per map image, got {list(keyframe_points.shape)}"
+            )
+        if not np.isfinite(keyframe_points).all():
+            raise DataError(f"{STATE_LABEL}: keyframe_descriptors hold NaN or infinite values")
+        zscore = ZScore().load_state(state)
+        if zscore.mean.shape != (keyframe_points.shape[1],):
+            raise DataError(
+                f"{STATE_LABEL}: mean and std must hold {keyframe_points.shape[1]} values, "
+                f"one per descriptor dimension, got {zscore.mean.shape[0]}"
+            )
+        options = stored_options(state)
+        for key, value in options.items():
+            setattr(self, key, value)
+        self.structure = structure
+        self.zscore = zscore
+        self.points = keyframe_points
+        self.poses = list(structure.poses)
+        cameras = set(structure.cameras)
+        self.camera = cameras.pop() if len(cameras) == 1 else None
+        self.structure_source = structure.source
+
     def keyframes_of(self, query: RefineQuery) -> list[int]:
         count = min(self.count, len(self.poses))
         if self.keyframes == "pose":
@@ -239,6 +301,31 @@ class FeaturesRefiner(PoseRefiner):
         if not answer.success:
             return Refined(query.network_pose, float(answer.inliers), True, seconds)
         return Refined(answer.pose, float(answer.inliers), False, seconds)
+
+
+def stored_options(state: dict[str, torch.Tensor]) -> dict:
+    """The query options a state keeps, each checked as the command line's would be;
+    an option the state lacks keeps the constructor's."""
+    options: dict = {}
+    try:
+        if "keyframes" in state:
+            code = int(checked_tensor(state, "keyframes", torch.int64, STATE_LABEL))
+            if not 0 <= code < len(KEYFRAMES):
+                raise DataError(f"{STATE_LABEL}: keyframes must be 0 or 1, got {code}")
+            options["keyframes"] = KEYFRAMES[code]
+        for key in STATE_INTEGERS:
+            if key in state:
+                value = int(checked_tensor(state, key, torch.int64, STATE_LABEL))
+                options[key] = integer_at_least(f"refine.{key}", value, STATE_INTEGERS[key])
+        for key in STATE_NUMBERS:
+            if key in state:
+                value = float(checked_tensor(state, key, torch.float64, STATE_LABEL))
+                options[key] = positive_number(
+                    f"refine.{key}", value, **({"most": 1.0} if key == "ratio" else {})
+                )
+    except (ConfigError, TypeError, ValueError) as error:
+        raise DataError(f"{STATE_LABEL}: {error}") from None
+    return options
 
 
 def image_digest(image: np.ndarray) -> str:

@@ -143,14 +143,18 @@ class PoseRefiner(ABC):
     def state(self) -> dict[str, torch.Tensor]:
         """The fitted refiner as tensors, for model files; optional for plugins.
 
-        A refiner without it is left out of a model file (whose model then answers
-        with the network's pose): e.g. refine=features, whose map structure is built
-        from the map images, which a model file does not hold.
+        Everything the refiner's queries use, as plain tensors (a model file is read
+        by torch's weights-only loader: no other objects, no pickle), e.g.
+        refine=features' map structure (relocfw.structure.map_state), so a loaded model
+        needs no map image. A refiner without it is left out of a model file (whose
+        model then answers with the network's pose).
         """
         raise NotImplementedError(f"{type(self).__name__} cannot be saved in a model file")
 
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
-        """Restore what `state` returned: the refiner is then fitted."""
+        """Restore what `state` returned: the refiner is then fitted. The state comes
+        from a file anyone may have written: check every tensor's dtype, shape and
+        values before use and raise DataError naming the one at fault."""
         raise NotImplementedError(f"{type(self).__name__} cannot be loaded from a model file")
 
     @property

@@ -44,9 +44,13 @@ from relocfw.model.stored_parts import (
 # option as one QueryOptions mapping ("query"); 4: the refiner ("refine", where it can be
 # stored), and retrieval is a refiner, no longer the query option retrieval_k. Format 2
 # and 3 files are still read (their retrieval_k as refine=retrieval). A format 3 reader
-# must refuse format 4: it would read a retrieval model as the network's pose.
-MODEL_FORMAT = 4
-READABLE_FORMATS = (2, 3, 4)
+# must refuse format 4: it would read a retrieval model as the network's pose. 5: the
+# refiner's map (refine=features / features_rgb: per map image descriptors, 3-D points,
+# cameras; relocfw.structure.map_state), so a loaded model needs no map image; a format 4
+# reader must refuse it, or it would answer a structure model with the network's pose
+# without saying so. A format 4 file loads as before (it holds no structure refiner).
+MODEL_FORMAT = 5
+READABLE_FORMATS = (2, 3, 4, 5)
 MODEL_KIND = "relocfw-model"
 # The parts of a model file: the config group that registers their classes, and the
 # interface the class must implement. Every file has the first three; "refine" only
@@ -145,10 +149,11 @@ def save_model(
     """Write `relocalizer` (fitted) to `path`, atomically.
 
     The file holds the network, the map, the crop search, the query options and the
-    refiner where it can be stored (`PoseRefiner.saves_state`: refine=retrieval). A
-    refiner that cannot (refine=features, whose map structure is built from the map
-    images, which the file does not hold) is left out: see `stores_refiner`; the loaded
-    model then answers with the network's pose.
+    refiner where it can be stored (`PoseRefiner.saves_state`: refine=retrieval,
+    features, features_rgb, sequence; a features refiner with its map's structure, so
+    the loaded model needs no map image, depth file or cache). A refiner that cannot
+    (a plugin without `state`) is left out: see `stores_refiner`; the loaded model then
+    answers with the network's pose.
 
     Args:
         path: the model file to write.

@@ -138,7 +138,11 @@ def stored_crop(payload: dict[str, Any], crop_class: type, path: Path) -> CropSe
 def stored_refiner(
     payload: dict[str, Any], classes: dict[str, type], path: Path
 ) -> PoseRefiner | None:
-    """The file's refiner, rebuilt and given its state (fitted); None without one."""
+    """The file's refiner, rebuilt and given its state (fitted); None without one.
+
+    The refiner's `load_state` checks each tensor's dtype, shape and values (format 5:
+    a features refiner's whole map structure), and any fault is one DataError naming
+    the refine part."""
     if "refine" not in classes:
         return None
     part = payload["refine"]

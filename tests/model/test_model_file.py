@@ -174,7 +174,7 @@ def test_format_3_stores_and_gives_back_every_query_option(scene, tmp_path, name
     relocalizer, parts = fitted_with(options, scene, k=2 if name == "retrieval" else 0)
     path = save_model(tmp_path / "model.relocfw", relocalizer, parts, {"scene": "tiny"})
     payload = torch.load(path, weights_only=True)
-    assert payload["format"] == MODEL_FORMAT == 4
+    assert payload["format"] == MODEL_FORMAT == 5
     assert payload["query"] == options.as_dict()
     assert ("refine" in payload) == (name == "retrieval")
     loaded = load_model(path)
