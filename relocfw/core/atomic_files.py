@@ -126,6 +126,22 @@ def atomic_write(path: Path, mode: str = "wb") -> Iterator[IO]:
         raise
 
 
+def publish_folder(staging: Path, folder: Path, marker: str) -> None:
+    """Rename a finished `staging` folder to `folder`, all or nothing.
+
+    Folders of files (a rendered scene, a bag's extraction) are written beside their
+    place and renamed into it once complete, so a killed writer never leaves half a
+    folder under the real name. Where another process published the same folder
+    first (its `marker` file is there), that one is kept and this call returns; the
+    caller removes its own staging folder.
+    """
+    try:
+        os.replace(staging, folder)
+    except OSError:
+        if not (Path(folder) / marker).is_file():  # not a concurrent writer that won
+            raise
+
+
 def write_text_atomic(text: str, path: Path) -> None:
     """Write `text` to `path` all or nothing (results files, tables, notes)."""
     with atomic_write(path, "w") as stream:

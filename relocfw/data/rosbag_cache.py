@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import tempfile
 from dataclasses import asdict, dataclass
@@ -28,6 +27,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from relocfw.core.atomic_files import publish_folder
 from relocfw.core.errors import DataError
 from relocfw.core.progress import Progress
 from relocfw.data.depth import write_depth
@@ -118,11 +118,7 @@ def extracted_bag(
         with Bag(path) as bag:
             summary = Extraction(bag, topics, staging, on_error).run(quiet)
         (staging / "bag.json").write_text(json.dumps({**summary, "key": key_text}, indent=2))
-        try:
-            os.replace(staging, folder)
-        except OSError:
-            if not (folder / "bag.json").is_file():  # not a concurrent extraction that won
-                raise
+        publish_folder(staging, folder, "bag.json")
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return folder

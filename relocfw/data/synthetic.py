@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 import tempfile
 from dataclasses import asdict, dataclass
@@ -23,6 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from relocfw.core.atomic_files import publish_folder
 from relocfw.core.errors import ConfigError
 from relocfw.core.progress import Progress
 from relocfw.data.depth import write_depth
@@ -164,11 +164,7 @@ def ensure_synthetic_scene(spec: SyntheticSceneSpec, cache_dir: Path, quiet: boo
         (staging / "scene.json").write_text(
             json.dumps({**asdict(spec), **versions, "room": asdict(room)}, indent=2)
         )
-        try:
-            os.replace(staging, folder)
-        except OSError:
-            if not (folder / "scene.json").is_file():  # not a concurrent render that won
-                raise
+        publish_folder(staging, folder, "scene.json")
     finally:
         shutil.rmtree(staging, ignore_errors=True)
     return folder

@@ -50,3 +50,23 @@ def test_a_file_system_that_refuses_a_mode_change_still_gets_the_file(tmp_path, 
     monkeypatch.setattr(atomic_files.os, "chmod", refuse)
     write_text_atomic("kept", tmp_path / "results.txt")
     assert (tmp_path / "results.txt").read_text() == "kept"
+
+
+def test_a_folder_is_published_whole_and_a_concurrent_winner_is_kept(tmp_path):
+    staging, folder = tmp_path / ".staging-1", tmp_path / "scene"
+    staging.mkdir()
+    (staging / "done.json").write_text("first")
+    atomic_files.publish_folder(staging, folder, "done.json")
+    assert (folder / "done.json").read_text() == "first" and not staging.exists()
+    # A second writer finishing later keeps the first one's folder.
+    late = tmp_path / ".staging-2"
+    late.mkdir()
+    (late / "done.json").write_text("second")
+    (late / "more").write_text("x")
+    atomic_files.publish_folder(late, folder, "done.json")
+    assert (folder / "done.json").read_text() == "first"
+    # A folder in the way that is not a finished one is not silently kept.
+    (tmp_path / "other").mkdir()
+    (tmp_path / "other" / "stray").write_text("x")
+    with pytest.raises(OSError):
+        atomic_files.publish_folder(late, tmp_path / "other", "done.json")
