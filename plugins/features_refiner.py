@@ -282,7 +282,7 @@ class FeaturesRefiner(PoseRefiner):
                 "camera, so pass camera= to localize"
             )
         started = time.perf_counter()
-        if self.keyframes == "pose" and not finite_pose(query.network_pose):
+        if self.keyframes == "pose" and not query.network_pose.is_finite:
             # No map image is near a NaN pose; the network's answer stands, flagged.
             return Refined(query.network_pose, 0.0, True, {"retrieval": 0.0})
         keyframes = self.keyframes_of(query)
@@ -353,11 +353,6 @@ def has_depth_file(frame: object) -> bool:
     """Whether a map image (a Frame or MapImage) names a depth file that exists."""
     path = getattr(frame, "depth_path", None)
     return path is not None and Path(path).is_file()
-
-
-def finite_pose(pose: object) -> bool:
-    """Whether a Pose's position and quaternion are all finite numbers."""
-    return bool(np.isfinite(pose.position).all() and np.isfinite(pose.quaternion).all())
 
 
 def map_camera(views: Sequence[object]) -> PinholeCamera | None:

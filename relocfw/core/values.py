@@ -52,6 +52,12 @@ class Pose:
         object.__setattr__(self, "position", position)
         object.__setattr__(self, "quaternion", quaternion)
 
+    @property
+    def is_finite(self) -> bool:
+        """Whether every number of the pose is finite: a network or a file may give
+        NaN, which every distance to it would silently carry."""
+        return bool(np.isfinite(self.position).all() and np.isfinite(self.quaternion).all())
+
 
 @dataclass(frozen=True)
 class PoseOutput:

@@ -237,7 +237,7 @@ def keyframes_by_pose(
         raise ConfigError(f"max_angle_deg must be in [0, 180] degrees, got {max_angle_deg!r}")
     if not isinstance(pose, Pose):
         raise DataError(f"pose must be a Pose, got {type(pose).__name__}")
-    if not (np.isfinite(pose.position).all() and np.isfinite(pose.quaternion).all()):
+    if not pose.is_finite:
         # NaN distances would all sort last and pick images 0..count-1 as if chosen.
         raise DataError("pose holds NaN or infinity: no map image is near it")
     poses = (

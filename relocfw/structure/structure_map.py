@@ -451,7 +451,7 @@ def checked_view(number: int, view: object) -> MapView:
     """`view` itself when it is a MapView with a finite pose, else a DataError naming it."""
     if not isinstance(view, MapView):
         raise DataError(f"views[{number}] must be a MapView, got {type(view).__name__}")
-    if not (np.isfinite(view.pose.position).all() and np.isfinite(view.pose.quaternion).all()):
+    if not view.pose.is_finite:
         raise DataError(f"map view {view.name!r}: pose holds NaN or infinity")
     return view
 
