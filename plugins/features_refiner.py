@@ -125,17 +125,20 @@ class FeaturesRefiner(PoseRefiner):
                 f"are not metric here (dataset.metric=false); {NO_DEPTH_HINT}"
             )
 
-    def settings(self, views: Sequence[MapImage]) -> dict:
+    def settings(self, views: Sequence[MapImage], parameters: dict | None = None) -> dict:
         """What the map's structure depends on besides names, poses and cameras (its
         cache key): the builder and every parameter it is called with, each image's
         pixels, and each depth file's scale and contents, so new or changed depth
         maps, re-rendered images or other build parameters are never answered from an
         old cache. (relocfw.structure.structure_key adds the OpenCV and relocfw
-        versions.)"""
+        versions.) `parameters`: build_parameters(views), where the caller has them
+        already (a non-metric map's camera spacing is O(M^2) to find)."""
+        if parameters is None:
+            parameters = self.build_parameters(views)
         return {
             "structure": self.structure_source,
             "max_features": self.max_features,
-            "build": self.build_parameters(views),
+            "build": parameters,
             "images": [image_digest(v.image) for v in views],
             "depth": [depth_file_state(v) for v in views],
         }
@@ -196,7 +199,10 @@ class FeaturesRefiner(PoseRefiner):
             self.structure = build()
         else:
             key = structure_key(
-                [v.name for v in views], self.poses, [v.camera for v in views], self.settings(views)
+                [v.name for v in views],
+                self.poses,
+                [v.camera for v in views],
+                self.settings(views, parameters),
             )
             self.structure = cached_structure_map(self.cache_dir, key, build, quiet)
         if self.structure_source == "depth" and not self.structure.point_counts().any():

@@ -65,17 +65,20 @@ class BagWriter:
 
     def image(self, topic: str, stamp: int, rgb: np.ndarray, encoding="rgb8", bag_time=None):
         pixels = {"rgb8": rgb, "bgr8": rgb[:, :, ::-1], "mono8": rgb[:, :, :1]}[encoding]
-        height, width, channels = pixels.shape
-        message = self.Image(
+        self.write(topic, self.raw_image(stamp, pixels, encoding), bag_time or stamp)
+
+    def raw_image(self, stamp: int, values: np.ndarray, encoding: str):
+        """A sensor_msgs/Image of `values` ([H, W] or [H, W, C]) as its bytes in memory."""
+        height, width = values.shape[:2]
+        return self.Image(
             header=self.header(stamp),
             height=height,
             width=width,
             encoding=encoding,
             is_bigendian=0,
-            step=width * channels,
-            data=np.ascontiguousarray(pixels).reshape(-1),
+            step=values[0].nbytes,
+            data=np.ascontiguousarray(values).view(np.uint8).reshape(-1),
         )
-        self.write(topic, message, bag_time or stamp)
 
     def compressed(self, topic: str, stamp: int, rgb: np.ndarray) -> None:
         data = cv2.imencode(".png", rgb[:, :, ::-1])[1].reshape(-1)
@@ -84,17 +87,7 @@ class BagWriter:
 
     def depth(self, topic: str, stamp: int, metres: np.ndarray, encoding="16UC1") -> None:
         values = (metres * 1000).astype("<u2") if encoding == "16UC1" else metres.astype("<f4")
-        height, width = values.shape
-        message = self.Image(
-            header=self.header(stamp),
-            height=height,
-            width=width,
-            encoding=encoding,
-            is_bigendian=0,
-            step=width * values.itemsize,
-            data=values.view(np.uint8).reshape(-1),
-        )
-        self.write(topic, message, stamp)
+        self.write(topic, self.raw_image(stamp, values, encoding), stamp)
 
     def pose(self, topic: str, stamp: int, position, quaternion_xyzw) -> None:
         point = self.Point(x=position[0], y=position[1], z=position[2])
