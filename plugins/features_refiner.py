@@ -5,11 +5,25 @@ The structure-based family (hloc's): per map image RootSIFT keypoints with a 3-D
 each, lifted with the map image's depth (`structure=depth`) or triangulated between
 map images with their known poses (`structure=triangulated`, for users without depth).
 Per query: retrieve `count` keyframes, by the chosen crop's descriptor (with crop=ga,
-the paper's idea applied to retrieval) or by the network's pose, match, solve. With
-fewer than `min_inliers` inliers it answers the network's pose, flagged as fallen back;
-so it does when the network's pose is not finite and keyframes are chosen by it (no
-keyframe is near a NaN pose: the refiner cannot do better than the network, which is
-the contract's fallback, and one broken query does not stop an evaluation).
+the paper's idea applied to retrieval), by the network's pose, or by the last confident
+pose of the query's stream (`keyframes=track`, below); match, solve. With fewer than
+`min_inliers` inliers it answers the network's pose, flagged as fallen back; so it does
+when the network's pose is not finite and keyframes are chosen by it (no keyframe is
+near a NaN pose: the refiner cannot do better than the network, which is the
+contract's fallback, and one broken query does not stop an evaluation).
+
+Tracking (`keyframes=track`). Keyframes near the network's regressed pose did best in
+the project's Red Kitchen measurements (docs/results/structure.md: keyframes=pose ahead
+of retrieval), and consecutive frames of a recording move a few centimetres, so the
+pose solved for the previous frame is a far closer prior still. The queries of one
+stream (relocfw.structure.tracking_prior: the name's part before its last "/")
+arrive in order (evaluation, task=localize), so each query whose stream has a
+confident pose is matched against the keyframes near it. When that fails (the track
+is lost: a fast turn, a blurred frame) the same query is retried by descriptor
+retrieval, so tracking never answers worse than keyframes=descriptor would; its
+seconds then add both attempts per part, with the retry's in "tracking_retry". A
+stream without a confident pose (its first frame, or after a fallback) starts from
+retrieval; `reset` forgets every stream.
 
 On a map that is not metric (refine.metric=false, set from dataset.metric: an
 unaligned COLMAP model), the triangulation's one length in metres, the 5 cm smallest
@@ -26,8 +40,6 @@ the query options), so a loaded model needs no map image, depth file or cache.
 
 from __future__ import annotations
 
-import hashlib
-import inspect
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -36,32 +48,39 @@ import numpy as np
 import torch
 
 from relocfw.core.camera import PinholeCamera
-from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.errors import ConfigError
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
 from relocfw.core.standardise import ZScore, check_features, k_nearest
+from relocfw.core.values import Pose
 from relocfw.structure import (
     MapView,
     StructureMap,
-    build_by_triangulation,
     cached_structure_map,
     keyframes_by_pose,
     localize_against,
     structure_key,
 )
-from relocfw.structure.map_state import checked_tensor, map_of_state, map_state
-from relocfw.structure.structure_map import median_camera_spacing
+from relocfw.structure.features import LocalFeatures
+from relocfw.structure.map_state import map_of_state, map_state
+from relocfw.structure.refiner_inputs import (
+    builder_parameters,
+    has_depth_file,
+    map_camera,
+    structure_settings,
+)
+from relocfw.structure.refiner_state import (
+    STATE_INTEGERS,
+    STATE_LABEL,
+    STATE_NUMBERS,
+    checked_keyframes_choice,
+    options_state,
+    stored_keyframe_descriptors,
+    stored_options,
+)
+from relocfw.structure.tracking_prior import LastConfidentPoses
 
 STRUCTURES = ("depth", "triangulated")
-KEYFRAMES = ("descriptor", "pose")
-# On a map that is not metric, the smallest triangulation baseline as a share of the
-# median distance between neighbouring map images (see the module's note).
-NON_METRIC_BASELINE_SHARE = 0.5
-# The query options a state keeps (the fitted refiner's, so a file saved without its
-# options still answers as the run did), integers and numbers.
-STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4}  # and their least
-STATE_NUMBERS = ("ratio", "max_error_px")
-STATE_LABEL = "refine=features state"
 NO_DEPTH_HINT = (
     "use refine=features_rgb, which triangulates the map's points from its images and poses"
 )
@@ -74,7 +93,9 @@ class FeaturesRefiner(PoseRefiner):
         structure: "depth" (3-D points from the map images' depth maps) or
             "triangulated" (between map images with their known poses; RGB only).
         keyframes: "descriptor" (the map images nearest to the chosen crop's
-            descriptor) or "pose" (nearest to the network's pose, looking the same way).
+            descriptor), "pose" (nearest to the network's pose, looking the same way)
+            or "track" (nearest to the last confident pose of the query's stream,
+            retrieval by descriptor without one or when it fails; see the module).
         count: keyframes per query.
         max_features: most RootSIFT keypoints per image (map and query).
         ratio: Lowe's ratio test of the mutual nearest neighbours.
@@ -104,11 +125,8 @@ class FeaturesRefiner(PoseRefiner):
         if structure not in STRUCTURES:
             choices = ", ".join(STRUCTURES)
             raise ConfigError(f"refine.structure must be one of {choices}, got {structure!r}")
-        if keyframes not in KEYFRAMES:
-            choices = ", ".join(KEYFRAMES)
-            raise ConfigError(f"refine.keyframes must be one of {choices}, got {keyframes!r}")
         self.structure_source = structure
-        self.keyframes = keyframes
+        self.keyframes = checked_keyframes_choice(keyframes)
         self.count = integer_at_least("refine.count", count, 1)
         self.max_features = integer_at_least("refine.max_features", max_features, 8)
         self.ratio = positive_number("refine.ratio", ratio, most=1.0)
@@ -119,6 +137,7 @@ class FeaturesRefiner(PoseRefiner):
         if not isinstance(metric, bool):
             raise ConfigError(f"refine.metric must be true or false, got {metric!r}")
         self.metric = metric
+        self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
         if structure == "depth" and not metric:
             raise ConfigError(
                 "refine=features lifts depth maps (metres) into the map's poses, which "
@@ -126,39 +145,16 @@ class FeaturesRefiner(PoseRefiner):
             )
 
     def settings(self, views: Sequence[MapImage], parameters: dict | None = None) -> dict:
-        """What the map's structure depends on besides names, poses and cameras (its
-        cache key): the builder and every parameter it is called with, each image's
-        pixels, and each depth file's scale and contents, so new or changed depth
-        maps, re-rendered images or other build parameters are never answered from an
-        old cache. (relocfw.structure.structure_key adds the OpenCV and relocfw
-        versions.) `parameters`: build_parameters(views), where the caller has them
-        already (a non-metric map's camera spacing is O(M^2) to find)."""
+        """The map structure's cache key besides names, poses and cameras
+        (refiner_inputs.structure_settings). `parameters`: build_parameters(views),
+        where the caller has them already (a non-metric map's spacing is O(M^2))."""
         if parameters is None:
             parameters = self.build_parameters(views)
-        return {
-            "structure": self.structure_source,
-            "max_features": self.max_features,
-            "build": parameters,
-            "images": [image_digest(v.image) for v in views],
-            "depth": [depth_file_state(v) for v in views],
-        }
+        return structure_settings(self.structure_source, self.max_features, views, parameters)
 
     def build_parameters(self, views: Sequence[MapImage]) -> dict:
-        """The keyword arguments the builder gets besides views, max_features and quiet:
-        none for structure=depth; for triangulated, every parameter of
-        build_by_triangulation at its default (so a changed default changes the cache
-        key), with the smallest baseline scaled to a map that is not metric."""
-        if self.structure_source == "depth":
-            return {}
-        parameters = {
-            name: parameter.default
-            for name, parameter in inspect.signature(build_by_triangulation).parameters.items()
-            if name not in ("views", "max_features", "quiet")
-        }
-        if not self.metric:
-            spacing = median_camera_spacing([view.pose for view in views])
-            parameters["min_baseline_m"] = NON_METRIC_BASELINE_SHARE * spacing
-        return parameters
+        """The builder's keyword arguments (refiner_inputs.builder_parameters)."""
+        return builder_parameters(self.structure_source, self.metric, views)
 
     def check_map(self, frames: Sequence[object]) -> None:
         map_camera(frames)
@@ -170,6 +166,7 @@ class FeaturesRefiner(PoseRefiner):
 
     def fit(self, views: Sequence[MapImage], descriptors: np.ndarray, quiet: bool = True) -> None:
         quiet = quiet or self.quiet
+        self.tracked.clear()  # poses of another map's frames
         self.camera = map_camera(views)
         self.zscore = ZScore().fit(check_features(descriptors))
         self.points = self.zscore(check_features(descriptors))
@@ -227,17 +224,12 @@ class FeaturesRefiner(PoseRefiner):
         loaded from it needs no map image, depth file or cache."""
         if not hasattr(self, "structure"):
             raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
-        options = {key: torch.tensor(int(getattr(self, key))) for key in STATE_INTEGERS}
-        options |= {
-            key: torch.tensor(float(getattr(self, key)), dtype=torch.float64)
-            for key in STATE_NUMBERS
-        }
+        keys = ("keyframes", *STATE_INTEGERS, *STATE_NUMBERS)
         return {
             **map_state(self.structure),
             **self.zscore.state(),
             "keyframe_descriptors": torch.from_numpy(np.array(self.points, dtype=np.float64)),
-            "keyframes": torch.tensor(KEYFRAMES.index(self.keyframes)),
-            **options,
+            **options_state({key: getattr(self, key) for key in keys}),
         }
 
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
@@ -245,20 +237,7 @@ class FeaturesRefiner(PoseRefiner):
         before anything is kept (a model file is data from anyone); a fault is one
         DataError naming the tensor."""
         structure = map_of_state(state, STATE_LABEL)
-        keyframe_points = checked_tensor(state, "keyframe_descriptors", torch.float64, STATE_LABEL)
-        if keyframe_points.ndim != 2 or len(keyframe_points) != len(structure):
-            raise DataError(
-                f"{STATE_LABEL}: keyframe_descriptors must be [{len(structure)}, D], one "
-                f"row per map image, got {list(keyframe_points.shape)}"
-            )
-        if not np.isfinite(keyframe_points).all():
-            raise DataError(f"{STATE_LABEL}: keyframe_descriptors hold NaN or infinite values")
-        zscore = ZScore().load_state(state)
-        if zscore.mean.shape != (keyframe_points.shape[1],):
-            raise DataError(
-                f"{STATE_LABEL}: mean and std must hold {keyframe_points.shape[1]} values, "
-                f"one per descriptor dimension, got {zscore.mean.shape[0]}"
-            )
+        keyframe_points, zscore = stored_keyframe_descriptors(state, len(structure))
         options = stored_options(state)
         for key, value in options.items():
             setattr(self, key, value)
@@ -269,11 +248,29 @@ class FeaturesRefiner(PoseRefiner):
         cameras = set(structure.cameras)
         self.camera = cameras.pop() if len(cameras) == 1 else None
         self.structure_source = structure.source
+        self.tracked.clear()
+
+    def reset(self) -> None:
+        """Forget every stream's last confident pose (keyframes=track)."""
+        self.tracked.clear()
+
+    def prior_of(self, query: RefineQuery) -> Pose | None:
+        """The pose the first attempt's keyframes are chosen near; None: by descriptor."""
+        if self.keyframes == "pose":
+            return query.network_pose
+        if self.keyframes == "track":
+            return self.tracked.prior(query.name)
+        return None
 
     def keyframes_of(self, query: RefineQuery) -> list[int]:
+        """The keyframes of the query's first attempt."""
+        return self.keyframes_near(query, self.prior_of(query))
+
+    def keyframes_near(self, query: RefineQuery, prior: Pose | None) -> list[int]:
+        """The `count` keyframes near `prior`; without one, by the query's descriptor."""
         count = min(self.count, len(self.poses))
-        if self.keyframes == "pose":
-            return list(keyframes_by_pose(self.poses, query.network_pose, count))
+        if prior is not None:
+            return list(keyframes_by_pose(self.poses, prior, count))
         features = check_features(np.asarray(query.descriptor)[None], self.points.shape[1])
         _, indices = k_nearest(self.zscore(features), self.points, count)
         return [int(i) for i in indices[0]]
@@ -287,11 +284,38 @@ class FeaturesRefiner(PoseRefiner):
                 "refine=features needs the query's camera: the map images have no single "
                 "camera, so pass camera= to localize"
             )
-        started = time.perf_counter()
         if self.keyframes == "pose" and not query.network_pose.is_finite:
             # No map image is near a NaN pose; the network's answer stands, flagged.
             return Refined(query.network_pose, 0.0, True, {"retrieval": 0.0})
-        keyframes = self.keyframes_of(query)
+        prior = self.prior_of(query)
+        refined, features = self.attempt(query, camera, prior)
+        if self.keyframes != "track":
+            return refined
+        if refined.fell_back and prior is not None:
+            # The track is lost on this frame: the same query by retrieval, so tracking
+            # never answers worse than keyframes=descriptor would.
+            started = time.perf_counter()
+            retry, _ = self.attempt(query, camera, None, features)
+            seconds = dict(refined.seconds)
+            for part, spent in retry.seconds.items():
+                seconds[part] = seconds.get(part, 0.0) + spent
+            seconds["tracking_retry"] = time.perf_counter() - started
+            refined = Refined(retry.pose, retry.confidence, retry.fell_back, seconds)
+        self.tracked.record(query.name, refined.pose, refined.fell_back)
+        return refined
+
+    def attempt(
+        self,
+        query: RefineQuery,
+        camera: PinholeCamera,
+        prior: Pose | None,
+        features: LocalFeatures | None = None,
+    ) -> tuple[Refined, LocalFeatures | None]:
+        """One solve against the keyframes near `prior` (None: by descriptor), and the
+        query's local features it used (`features`: extracted already, by an earlier
+        attempt of the same query)."""
+        started = time.perf_counter()
+        keyframes = self.keyframes_near(query, prior)
         retrieval = time.perf_counter() - started
         answer = localize_against(
             self.structure,
@@ -302,74 +326,11 @@ class FeaturesRefiner(PoseRefiner):
             ratio=self.ratio,
             max_error_px=self.max_error_px,
             min_inliers=self.min_inliers,
+            query_features=features,
         )
         seconds = {"retrieval": retrieval, **answer.seconds}
         if not answer.success:
-            return Refined(query.network_pose, float(answer.inliers), True, seconds)
-        return Refined(answer.pose, float(answer.inliers), False, seconds)
-
-
-def stored_options(state: dict[str, torch.Tensor]) -> dict:
-    """The query options a state keeps, each checked as the command line's would be;
-    an option the state lacks keeps the constructor's."""
-    options: dict = {}
-    try:
-        if "keyframes" in state:
-            code = int(checked_tensor(state, "keyframes", torch.int64, STATE_LABEL))
-            if not 0 <= code < len(KEYFRAMES):
-                raise DataError(f"{STATE_LABEL}: keyframes must be 0 or 1, got {code}")
-            options["keyframes"] = KEYFRAMES[code]
-        for key in STATE_INTEGERS:
-            if key in state:
-                value = int(checked_tensor(state, key, torch.int64, STATE_LABEL))
-                options[key] = integer_at_least(f"refine.{key}", value, STATE_INTEGERS[key])
-        for key in STATE_NUMBERS:
-            if key in state:
-                value = float(checked_tensor(state, key, torch.float64, STATE_LABEL))
-                options[key] = positive_number(
-                    f"refine.{key}", value, **({"most": 1.0} if key == "ratio" else {})
-                )
-    except (ConfigError, TypeError, ValueError) as error:
-        raise DataError(f"{STATE_LABEL}: {error}") from None
-    return options
-
-
-def image_digest(image: np.ndarray) -> str:
-    """A short hash of an image's pixels (about a second for 400 VGA images)."""
-    return hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=8).hexdigest()
-
-
-def depth_file_state(view: MapImage) -> list:
-    """A depth file as the cache key sees it: path, scale, and a hash of its bytes
-    when it exists (size and modification time miss a file copied over another with
-    its times kept)."""
-    if view.depth_path is None:
-        return [None]
-    path = Path(view.depth_path)
-    state = file_digest(path) if path.is_file() else "missing"
-    return [str(path), view.depth_units_per_metre, state]
-
-
-def file_digest(path: Path) -> str:
-    """A short hash of a file's bytes (a 7-Scenes depth PNG: about 0.2 ms)."""
-    return hashlib.blake2b(path.read_bytes(), digest_size=8).hexdigest()
-
-
-def has_depth_file(frame: object) -> bool:
-    """Whether a map image (a Frame or MapImage) names a depth file that exists."""
-    path = getattr(frame, "depth_path", None)
-    return path is not None and Path(path).is_file()
-
-
-def map_camera(views: Sequence[object]) -> PinholeCamera | None:
-    """The map images' one camera (queries default to it), None where they differ;
-    ConfigError naming the first map image without one (views: anything with `name`
-    and `camera`, MapImages or relocfw.data.frames.Frames)."""
-    for view in views:
-        if view.camera is None:
-            raise ConfigError(
-                f"refine=features needs the camera intrinsics of every map image; "
-                f"{view.name} has none (the dataset gives no intrinsics for it)"
-            )
-    cameras = {view.camera for view in views}
-    return cameras.pop() if len(cameras) == 1 else None
+            found = Refined(query.network_pose, float(answer.inliers), True, seconds)
+        else:
+            found = Refined(answer.pose, float(answer.inliers), False, seconds)
+        return found, answer.query_features

@@ -141,6 +141,13 @@ class DiagnoseConfig:
 
 
 @dataclass
+class CalibrateConfig:
+    share: float = MISSING
+    coverage: float = MISSING
+    bins: int = MISSING
+
+
+@dataclass
 class TrainConfig:
     iterations: int = MISSING
     batch_size: int = MISSING
@@ -182,6 +189,7 @@ class RelocfwConfig:
     localize: LocalizeConfig = field(default_factory=LocalizeConfig)
     export: ExportConfig = field(default_factory=ExportConfig)
     relocalize: RelocalizeConfig = field(default_factory=RelocalizeConfig)
+    calibrate: CalibrateConfig = field(default_factory=CalibrateConfig)
     # Open, and checked where it is read (relocfw.app.tasks.compare): a typed node
     # would refuse `~compare.methods`, the documented way to replace every row.
     compare: Dict[str, Any] = field(default_factory=dict)  # noqa: UP006

@@ -15,6 +15,7 @@ from relocfw.core.json_output import strict_json
 from relocfw.core.pipeline import Relocalizer
 from relocfw.data.frames import Frame
 from relocfw.model.checkpoints import write_text_atomic
+from relocfw.report.calibration import Calibration, calibrate_relocalizer
 from relocfw.report.evaluation import MethodResult, evaluate, per_image_csv, summarise
 from relocfw.report.table import format_table
 from relocfw.report.units import METRES, PositionUnit, json_note, relabel_row, text_note
@@ -28,9 +29,15 @@ def safe_name(name: str) -> str:
 
 
 def run_method(
-    method: str, relocalizer: Relocalizer, train: Split, test: Split, quiet: bool = False
+    method: str,
+    relocalizer: Relocalizer,
+    train: Split,
+    test: Split,
+    quiet: bool = False,
+    calibration: Calibration | None = None,
 ) -> tuple[MethodResult, np.ndarray]:
-    """Fit the map on the training split and relocalize the test split.
+    """Fit the map on the training split, calibrate the error bounds on the
+    validation block where there is one, and relocalize the test split.
 
     Returns:
         The method's answers and the map's [N, D] training descriptors.
@@ -43,6 +50,9 @@ def run_method(
         frames=frames,
     )
     note_skipped_views(method, relocalizer)
+    if calibration is not None:
+        bounds, _ = calibrate_relocalizer(relocalizer, calibration, quiet)
+        print(f"{method}: {bounds.describe()}")
     return evaluate(method, relocalizer, *test, quiet=quiet), features
 
 

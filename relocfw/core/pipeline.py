@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -34,7 +35,11 @@ from relocfw.core.sampled_answer import sampled_answer, samples_answer
 from relocfw.core.sampling import configured_samples
 from relocfw.core.scorer import Scorer
 from relocfw.core.search_loop import score_chosen_together, search_together
+from relocfw.core.trust_signal import with_bounds
 from relocfw.core.values import Crop, CropWithPose, Localization, Pose
+
+if TYPE_CHECKING:
+    from relocfw.core.error_bounds import ErrorBounds
 
 
 def check_sampling(
@@ -154,6 +159,9 @@ class Relocalizer:
         self.refiner = refiner
         self.map_poses: list[Pose] = []
         self.metadata: dict = {}  # what a model file says about the data it was built on
+        # Calibrated error bounds (relocfw.report.calibration), given to every answer;
+        # None: answers carry NaN bounds.
+        self.bounds: ErrorBounds | None = None
 
     @property
     def backbone(self) -> Backbone:
@@ -179,8 +187,8 @@ class Relocalizer:
         search: CropSearch | None = None,
     ) -> Relocalizer:
         """This pipeline with another network answering for the same one (e.g. its ONNX
-        export), other options and/or another search: the same fitted map, map poses
-        and metadata. The refiner is the same object too, history included (a
+        export), other options and/or another search: the same fitted map, map poses,
+        metadata and error bounds. The refiner is the same object too, history included (a
         sequence refiner's frames of each recording): query one of the two pipelines,
         or call `refiner.reset()` before switching, as evaluation does."""
         swapped = Relocalizer(
@@ -193,6 +201,7 @@ class Relocalizer:
         )
         swapped.map_poses = self.map_poses
         swapped.metadata = self.metadata
+        swapped.bounds = self.bounds
         return swapped
 
     def with_backbone(self, backbone: Backbone) -> Relocalizer:
@@ -301,7 +310,7 @@ class Relocalizer:
                 RefineQuery(query.image, pose, answer.features, camera, name)
             )
             pose = refined.pose
-        return Localization(
+        localization = Localization(
             pose=pose,
             crop=crop,
             distance=distance,
@@ -314,6 +323,7 @@ class Relocalizer:
             fell_back=refined is not None and refined.fell_back,
             refine_seconds=dict(refined.seconds) if refined is not None else {},
         )
+        return localization if self.bounds is None else with_bounds(localization, self.bounds)
 
     def pose_of(self, answer: NetworkAnswers) -> Pose:
         """The network's pose for one window: what the refiner starts from (and the

@@ -21,6 +21,7 @@ from typing import Any
 
 import torch
 
+from relocfw.core.error_bounds import ErrorBounds
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.core.pipeline import Relocalizer
@@ -148,12 +149,13 @@ def save_model(
 ) -> Path:
     """Write `relocalizer` (fitted) to `path`, atomically.
 
-    The file holds the network, the map, the crop search, the query options and the
-    refiner where it can be stored (`PoseRefiner.saves_state`: refine=retrieval,
-    features, features_rgb, sequence; a features refiner with its map's structure, so
-    the loaded model needs no map image, depth file or cache). A refiner that cannot
-    (a plugin without `state`) is left out: see `stores_refiner`; the loaded model then
-    answers with the network's pose.
+    The file holds the network, the map, the crop search, the query options, the
+    calibrated error bounds where the pipeline has them, and the refiner where it can
+    be stored (`PoseRefiner.saves_state`: refine=retrieval, features, features_rgb,
+    sequence; a features refiner with its map's structure, so the loaded model needs
+    no map image, depth file or cache). A refiner that cannot (a plugin without
+    `state`) is left out: see `stores_refiner`; the loaded model then answers with the
+    network's pose.
 
     Args:
         path: the model file to write.
@@ -195,6 +197,8 @@ def save_model(
         payload["map_poses"] = torch.tensor(
             [[*p.position, *p.quaternion] for p in relocalizer.map_poses], dtype=torch.float64
         )
+    if relocalizer.bounds is not None:  # calibrated error bounds (calibrate.share)
+        payload["error_bounds"] = relocalizer.bounds.state()
     save_atomic(payload, Path(path))
     return Path(path)
 
@@ -274,4 +278,16 @@ def load_model(
     if map_poses is not None:
         relocalizer.map_poses = map_poses
     relocalizer.metadata = metadata
+    relocalizer.bounds = stored_bounds(payload, path)
     return relocalizer
+
+
+def stored_bounds(payload: dict[str, Any], path: Path) -> ErrorBounds | None:
+    """The file's calibrated error bounds, checked (relocfw.core.error_bounds); None
+    for a file without (written without calibrate.share, or before bounds existed)."""
+    if "error_bounds" not in payload:
+        return None
+    state = payload["error_bounds"]
+    if not isinstance(state, dict) or not all(isinstance(key, str) for key in state):
+        raise DataError(f"{path}: damaged model file (error_bounds is not a mapping)")
+    return ErrorBounds.from_state(state, f"{path}: error_bounds")

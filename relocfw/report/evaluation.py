@@ -152,7 +152,7 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
         "mean_network_passes": float(np.mean([a.network_passes for a in result.answers])),
         "mean_crops_scored": float(np.mean([a.evaluations for a in result.answers])),
     }
-    return summary | refine_columns(result) | uncertainty_columns(result)
+    return summary | refine_columns(result) | uncertainty_columns(result) | bound_columns(result)
 
 
 def refined_answers(result: MethodResult) -> list[Localization]:
@@ -182,6 +182,27 @@ def refine_columns(result: MethodResult) -> dict[str, float | int]:
         seconds = [a.refine_seconds.get(part, 0.0) for a in refined]
         columns[f"refine_median_ms_{part}"] = 1000.0 * float(np.median(seconds))
     return columns
+
+
+def bound_columns(result: MethodResult) -> dict[str, float]:
+    """How often the answers' bounds held (error at most the bound) and their medians;
+    none when the answers carry no bounds (NaN). An infinite bound holds."""
+    position_bounds = np.array([a.position_bound for a in result.answers], dtype=np.float64)
+    orientation_bounds = np.array(
+        [a.orientation_bound_deg for a in result.answers], dtype=np.float64
+    )
+    if not len(position_bounds) or np.isnan(position_bounds).all():
+        return {}
+    position_held = result.position_errors() <= position_bounds
+    orientation_held = result.orientation_errors() <= orientation_bounds
+    return {
+        "position_bound_coverage": float(np.mean(position_held)),
+        "orientation_bound_coverage": float(np.mean(orientation_held)),
+        "both_bounds_coverage": float(np.mean(position_held & orientation_held)),
+        "median_position_bound_m": float(np.median(position_bounds)),
+        "median_orientation_bound_deg": float(np.median(orientation_bounds)),
+        "infinite_bounds": int(np.sum(~np.isfinite(position_bounds))),
+    }
 
 
 CONFIDENCE_SIGNAL = "refiner confidence"
@@ -291,6 +312,9 @@ ANSWER_COLUMNS = (
     # The refiner's: what its uncertainty measures rank by (NaN / 0 without one).
     "refine_confidence",
     "fell_back",
+    # Calibrated error bounds (calibrate.share): NaN where the model has none.
+    "position_bound_m",
+    "orientation_bound_deg",
 )
 POSE_COLUMNS = ("x", "y", "z", "qw", "qx", "qy", "qz")
 CSV_COLUMNS = (
@@ -319,6 +343,8 @@ def answer_cells(answer: Localization) -> list[str | int]:
         f"{answer.orientation_spread_deg:.4f}",
         f"{answer.refine_confidence:.6g}",
         int(answer.fell_back),
+        f"{answer.position_bound:.6g}",
+        f"{answer.orientation_bound_deg:.6g}",
     ]
 
 

@@ -8,7 +8,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from relocfw.report.comparison import as_markdown
-from relocfw.report.evaluation import MethodResult, uncertainty_of
+from relocfw.report.evaluation import MethodResult, bound_columns, uncertainty_of
 from relocfw.report.metrics import RECALL_BANDS, accuracy_metrics, band_key, band_title
 from relocfw.report.statistics import paired_test, spread
 from relocfw.report.uncertainty import REJECTION_SHARES
@@ -125,7 +125,51 @@ def seed_comparison(
             uncertainty = uncertainty_statistics([results[s][scene][method] for s in seeds])
             if uncertainty is not None:
                 table[scene][method]["uncertainty"] = uncertainty
+            bounds = bound_statistics([results[s][scene][method] for s in seeds])
+            if bounds is not None:
+                table[scene][method]["bounds"] = bounds
     return table
+
+
+def bound_statistics(by_seed: Sequence[MethodResult]) -> dict[str, list[float]] | None:
+    """Per seed, how often the calibrated error bounds held on the queries and their
+    medians (relocfw.report.evaluation.bound_columns); None when no seed has bounds."""
+    columns = [bound_columns(result) for result in by_seed]
+    if not any(columns):
+        return None
+    nan = float("nan")
+    keys = (
+        "position_bound_coverage",
+        "orientation_bound_coverage",
+        "median_position_bound_m",
+        "median_orientation_bound_deg",
+    )
+    return {key: [c.get(key, nan) for c in columns] for key in keys}
+
+
+def bound_cells(bounds: Mapping[str, list[float]] | None) -> list[str]:
+    """A row's BOUND_TITLES cells: "-" for a method without bounds."""
+    if bounds is None:
+        return ["-", "-"]
+    held = "/".join(
+        f"{p:.0%} {o:.0%}"
+        for p, o in zip(
+            bounds["position_bound_coverage"], bounds["orientation_bound_coverage"], strict=True
+        )
+    )
+    medians = "/".join(
+        f"{p:.3f} m {o:.1f} deg"
+        for p, o in zip(
+            bounds["median_position_bound_m"], bounds["median_orientation_bound_deg"], strict=True
+        )
+    )
+    return [held, medians]
+
+
+BOUND_TITLES = [
+    "bounds held: position, orientation (per seed)",
+    "median bound (per seed)",
+]
 
 
 def paired_cell(test: Mapping[str, object], unit_format: str) -> str:
@@ -212,6 +256,10 @@ def seed_rows(
     if any(m is not None for m in measured):
         header += UNCERTAINTY_TITLES
         rows = [row + uncertainty_cells(m) for row, m in zip(rows, measured, strict=True)]
+    bounded = [stats.get("bounds") for by_method in table.values() for stats in by_method.values()]
+    if any(b is not None for b in bounded):
+        header += BOUND_TITLES
+        rows = [row + bound_cells(b) for row, b in zip(rows, bounded, strict=True)]
     return header, rows
 
 

@@ -46,6 +46,8 @@ class StructureAnswer:
         seconds: time per part, measured with time.perf_counter: "features"
             (extraction; 0.0 when the caller passed the features), "matching"
             (matching and gathering correspondences) and "solve".
+        query_features: the query's LocalFeatures the solve used, so a second solve
+            of the same query (against other keyframes) need not extract them again.
     """
 
     pose: Pose | None
@@ -53,6 +55,7 @@ class StructureAnswer:
     correspondences: int
     success: bool
     seconds: dict[str, float] = field(default_factory=dict)
+    query_features: LocalFeatures | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         # A copy, so the caller's dict cannot change a frozen answer afterwards.
@@ -195,6 +198,7 @@ def localize_against(
         inliers=solved.inliers,
         correspondences=len(points_2d),
         success=solved.success,
+        query_features=query_features,
         seconds={
             "features": features_done - start,
             "matching": matching_done - features_done,

@@ -19,7 +19,7 @@ from relocfw.plugins.features_refiner import FeaturesRefiner
         ({"max_error_px": -1}, "refine.max_error_px must be above 0, got -1"),
         ({"count": 0}, "refine.count must be at least 1, got 0"),
         ({"structure": "lidar"}, "refine.structure must be one of depth, triangulated"),
-        ({"keyframes": "random"}, "refine.keyframes must be one of descriptor, pose"),
+        ({"keyframes": "random"}, "refine.keyframes must be one of descriptor, pose, track"),
     ],
 )
 def test_a_bad_option_is_refused_when_built_naming_its_key(options, message):

@@ -27,6 +27,7 @@ from relocfw.app.results import run_method, safe_name, write_results
 from relocfw.app.spellings import rewrite
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.training_runs import prepare_model
+from relocfw.app.validation_block import carve_validation
 from relocfw.core.errors import ConfigError
 from relocfw.core.json_output import strict_json
 from relocfw.core.options import integer_at_least
@@ -200,6 +201,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         units[label] = unit_of(dataset)
         unit = one_unit(units)  # a mixed list fails before this scene trains
         train = load_split(dataset, "train", quiet)
+        train, calibration = carve_validation(first_cfg, train)
         test = load_split(dataset, "test", quiet)
         write_skipped(dataset, run_dir)
         training[label] = train[0]
@@ -221,7 +223,9 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
                 relocalizer = on_engine(
                     method_cfg, method.relocalizer(device), checkpoint, device, train[1]
                 )
-                result, features = run_method(rows[name], relocalizer, train, test, quiet)
+                result, features = run_method(
+                    rows[name], relocalizer, train, test, quiet, calibration
+                )
                 results[seed][label][rows[name]] = result
                 if "seed" in method_cfg.crop and len(crop_seeds) > 1:
                     seed_runs[seed][label][rows[name]] = rerun_crop_seeds(

@@ -214,6 +214,8 @@ def load_for_localize(cfg: DictConfig, device: torch.device) -> Relocalizer:
 
 def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     relocalizer = load_for_localize(cfg, device)
+    if relocalizer.bounds is not None:  # written per frame in localization.csv
+        print(f"error bounds: {relocalizer.bounds.describe()}")
     spec = str(cfg.localize.images or "")
     topic = str(cfg.localize.topic) if cfg.localize.topic else None
     frames = open_frames(spec, topic)

@@ -16,6 +16,7 @@ from relocfw.app.methods import centre_label, dataset_settings, scene_name
 from relocfw.app.results import Split, run_method, write_results
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.tasks.train import trained
+from relocfw.app.validation_block import held_out_names
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.query_options import QueryOptions
 from relocfw.core.version import VERSION
@@ -23,6 +24,7 @@ from relocfw.data.frames import mean_pose
 from relocfw.model.distributed import World
 from relocfw.model.model_file import save_model, stores_refiner
 from relocfw.plugins.centre_crop import CentreCrop
+from relocfw.report.calibration import Calibration
 from relocfw.report.evaluation import MethodResult, constant_answer, evaluate
 from relocfw.report.units import METRES, PositionUnit, unit_of
 
@@ -39,13 +41,15 @@ def relocalize(
     centre_label: str = "posenet (centre crop)",
     quiet: bool = False,
     unit: PositionUnit = METRES,
+    calibration: Calibration | None = None,
 ) -> list[MethodResult]:
     """The main job after training: the method and its baselines, results written
-    with the positions' `unit` (relocfw.report.units.unit_of the dataset)."""
+    with the positions' `unit` (relocfw.report.units.unit_of the dataset). With a
+    `calibration` block, the method's answers carry calibrated error bounds."""
     results = []
     if "mean_pose" in baselines:
         results.append(constant_answer("mean training pose", mean_pose(train[0]), test[0]))
-    method_result, _ = run_method(method, relocalizer, train, test, quiet)
+    method_result, _ = run_method(method, relocalizer, train, test, quiet, calibration)
     options = relocalizer.options
     if "posenet" in baselines and not (
         isinstance(relocalizer.search, CentreCrop) and relocalizer.refiner is None
@@ -89,6 +93,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         centre_label=centre_label(cfg, choices),
         quiet=quiet,
         unit=unit_of(done.dataset),
+        calibration=done.calibration,
     )
     metadata = {
         "method": method.label,
@@ -96,6 +101,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         "scene": scene_name(cfg, choices),
         "dataset_settings": dataset_settings(cfg),
         "map_images": len(done.train[0]),
+        "validation_images": len(held_out_names(done.calibration)),
         "checkpoint": str(done.checkpoint),
         "relocfw_version": VERSION,
     }

@@ -17,8 +17,10 @@ from omegaconf import DictConfig
 from relocfw.app.methods import Method, build, build_method
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.training_runs import prepare_model
+from relocfw.app.validation_block import carve_validation
 from relocfw.data.frames import Frame
 from relocfw.model.distributed import World
+from relocfw.report.calibration import Calibration
 from relocfw.report.units import unit_of
 
 
@@ -31,6 +33,8 @@ class Trained:
     train: tuple[list[Frame], list[np.ndarray]]
     checkpoint: Path
     run_dir: Path
+    # The validation block held out of `train` to calibrate error bounds (calibrate.share).
+    calibration: Calibration | None = None
 
 
 def trained(
@@ -54,6 +58,8 @@ def trained(
     train = load_split(dataset, "train", quiet or (world is not None and not world.is_main))
     if world is not None and world.is_main:
         world.barrier()
+    # Held out before training: the network must not have seen the block it is judged on.
+    train, calibration = carve_validation(cfg, train)
     if map_size:
         method.index.check_map_size(len(train[0]))
         if method.refiner is not None:
@@ -67,7 +73,7 @@ def trained(
         curve=run_dir / "training_curve.png",
         unit=unit_of(dataset),
     )
-    return Trained(method, dataset, train, checkpoint, run_dir)
+    return Trained(method, dataset, train, checkpoint, run_dir, calibration)
 
 
 def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:

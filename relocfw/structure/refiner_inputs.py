@@ -1,0 +1,99 @@
+"""What refine=features reads of its map images besides the structure itself: the
+one camera queries default to, whether depth files exist, the builder's parameters,
+and the digests of pixels and depth files that the structure cache's key is made of
+(plugins/features_refiner.py, `settings`)."""
+
+from __future__ import annotations
+
+import hashlib
+import inspect
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from relocfw.core.camera import PinholeCamera
+from relocfw.core.errors import ConfigError
+from relocfw.core.refinement import MapImage
+from relocfw.structure.structure_map import build_by_triangulation, median_camera_spacing
+
+# On a map that is not metric, the smallest triangulation baseline as a share of the
+# median distance between neighbouring map images (see plugins/features_refiner.py).
+NON_METRIC_BASELINE_SHARE = 0.5
+
+
+def builder_parameters(structure: str, metric: bool, views: Sequence[MapImage]) -> dict:
+    """The keyword arguments the builder gets besides views, max_features and quiet:
+    none for structure=depth; for triangulated, every parameter of
+    build_by_triangulation at its default (so a changed default changes the cache
+    key), with the smallest baseline scaled to a map that is not metric."""
+    if structure == "depth":
+        return {}
+    parameters = {
+        name: parameter.default
+        for name, parameter in inspect.signature(build_by_triangulation).parameters.items()
+        if name not in ("views", "max_features", "quiet")
+    }
+    if not metric:
+        spacing = median_camera_spacing([view.pose for view in views])
+        parameters["min_baseline_m"] = NON_METRIC_BASELINE_SHARE * spacing
+    return parameters
+
+
+def structure_settings(
+    structure: str, max_features: int, views: Sequence[MapImage], parameters: dict
+) -> dict:
+    """What the map's structure depends on besides names, poses and cameras (its
+    cache key): the builder and every parameter it is called with, each image's
+    pixels, and each depth file's scale and contents, so new or changed depth
+    maps, re-rendered images or other build parameters are never answered from an
+    old cache. (relocfw.structure.structure_key adds the OpenCV and relocfw
+    versions.)"""
+    return {
+        "structure": structure,
+        "max_features": max_features,
+        "build": parameters,
+        "images": [image_digest(v.image) for v in views],
+        "depth": [depth_file_state(v) for v in views],
+    }
+
+
+def image_digest(image: np.ndarray) -> str:
+    """A short hash of an image's pixels (about a second for 400 VGA images)."""
+    return hashlib.blake2b(np.ascontiguousarray(image).tobytes(), digest_size=8).hexdigest()
+
+
+def depth_file_state(view: MapImage) -> list:
+    """A depth file as the cache key sees it: path, scale, and a hash of its bytes
+    when it exists (size and modification time miss a file copied over another with
+    its times kept)."""
+    if view.depth_path is None:
+        return [None]
+    path = Path(view.depth_path)
+    state = file_digest(path) if path.is_file() else "missing"
+    return [str(path), view.depth_units_per_metre, state]
+
+
+def file_digest(path: Path) -> str:
+    """A short hash of a file's bytes (a 7-Scenes depth PNG: about 0.2 ms)."""
+    return hashlib.blake2b(path.read_bytes(), digest_size=8).hexdigest()
+
+
+def has_depth_file(frame: object) -> bool:
+    """Whether a map image (a Frame or MapImage) names a depth file that exists."""
+    path = getattr(frame, "depth_path", None)
+    return path is not None and Path(path).is_file()
+
+
+def map_camera(views: Sequence[object]) -> PinholeCamera | None:
+    """The map images' one camera (queries default to it), None where they differ;
+    ConfigError naming the first map image without one (views: anything with `name`
+    and `camera`, MapImages or relocfw.data.frames.Frames)."""
+    for view in views:
+        if view.camera is None:
+            raise ConfigError(
+                f"refine=features needs the camera intrinsics of every map image; "
+                f"{view.name} has none (the dataset gives no intrinsics for it)"
+            )
+    cameras = {view.camera for view in views}
+    return cameras.pop() if len(cameras) == 1 else None

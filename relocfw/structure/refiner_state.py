@@ -1,0 +1,92 @@
+"""What a model file keeps of refine=features besides the map's structure
+(relocfw.structure.map_state): the z-scored map descriptors keyframes are retrieved
+by, their standardisation, and the query options.
+
+A fitted refiner's state (plugins/features_refiner.py, `state` / `load_state`) holds
+its query options, so a file saved without its options still answers as the run did.
+The file is data from anyone: every tensor is checked before use, every option with
+the check the command line's would get, and a fault is one DataError naming it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.options import integer_at_least, positive_number
+from relocfw.core.standardise import ZScore
+from relocfw.structure.map_state import checked_tensor
+
+# Stored as its index here: append new choices, never reorder (older files keep
+# their codes: 0 descriptor, 1 pose).
+KEYFRAMES = ("descriptor", "pose", "track")
+# The integer options a state keeps, with their least values, and the numbers.
+STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4}
+STATE_NUMBERS = ("ratio", "max_error_px")
+STATE_LABEL = "refine=features state"
+
+
+def checked_keyframes_choice(keyframes: object) -> str:
+    """refine.keyframes as given, or ConfigError listing the choices."""
+    if keyframes not in KEYFRAMES:
+        choices = ", ".join(KEYFRAMES)
+        raise ConfigError(f"refine.keyframes must be one of {choices}, got {keyframes!r}")
+    return str(keyframes)
+
+
+def options_state(options: dict) -> dict[str, torch.Tensor]:
+    """`options` (keyframes and every STATE_INTEGERS / STATE_NUMBERS key) as tensors."""
+    state = {"keyframes": torch.tensor(KEYFRAMES.index(options["keyframes"]))}
+    state |= {key: torch.tensor(int(options[key])) for key in STATE_INTEGERS}
+    state |= {key: torch.tensor(float(options[key]), dtype=torch.float64) for key in STATE_NUMBERS}
+    return state
+
+
+def stored_options(state: dict[str, torch.Tensor]) -> dict:
+    """The query options a state keeps, each checked as the command line's would be;
+    an option the state lacks keeps the constructor's."""
+    options: dict = {}
+    try:
+        if "keyframes" in state:
+            code = int(checked_tensor(state, "keyframes", torch.int64, STATE_LABEL))
+            if not 0 <= code < len(KEYFRAMES):
+                codes = ", ".join(f"{n} {name}" for n, name in enumerate(KEYFRAMES))
+                raise DataError(
+                    f"{STATE_LABEL}: keyframes must be in 0..{len(KEYFRAMES) - 1} "
+                    f"({codes}), got {code}"
+                )
+            options["keyframes"] = KEYFRAMES[code]
+        for key in STATE_INTEGERS:
+            if key in state:
+                value = int(checked_tensor(state, key, torch.int64, STATE_LABEL))
+                options[key] = integer_at_least(f"refine.{key}", value, STATE_INTEGERS[key])
+        for key in STATE_NUMBERS:
+            if key in state:
+                value = float(checked_tensor(state, key, torch.float64, STATE_LABEL))
+                options[key] = positive_number(
+                    f"refine.{key}", value, **({"most": 1.0} if key == "ratio" else {})
+                )
+    except (ConfigError, TypeError, ValueError) as error:
+        raise DataError(f"{STATE_LABEL}: {error}") from None
+    return options
+
+
+def stored_keyframe_descriptors(state: dict[str, torch.Tensor], images: int) -> tuple:
+    """The z-scored map descriptors ([images, D] float64, finite) and the ZScore of
+    their D dimensions that a state keeps, each checked; DataError naming the tensor."""
+    points = checked_tensor(state, "keyframe_descriptors", torch.float64, STATE_LABEL)
+    if points.ndim != 2 or len(points) != images:
+        raise DataError(
+            f"{STATE_LABEL}: keyframe_descriptors must be [{images}, D], one row per map "
+            f"image, got {list(points.shape)}"
+        )
+    if not np.isfinite(points).all():
+        raise DataError(f"{STATE_LABEL}: keyframe_descriptors hold NaN or infinite values")
+    zscore = ZScore().load_state(state)
+    if zscore.mean.shape != (points.shape[1],):
+        raise DataError(
+            f"{STATE_LABEL}: mean and std must hold {points.shape[1]} values, one per "
+            f"descriptor dimension, got {zscore.mean.shape[0]}"
+        )
+    return points, zscore
