@@ -13,12 +13,20 @@ from omegaconf import DictConfig
 
 from relocfw.app import spellings
 from relocfw.app.config_schema import name_of, store
-from relocfw.app.devices import pick_device
-from relocfw.app.engines import wanted_engine
+from relocfw.app.engines import check_common
 from relocfw.app.hydra_errors import COMPOSITION_ERRORS, one_line
 from relocfw.app.hydra_plugins import install as install_plugin_discovery
 from relocfw.app.plugin_discovery import conflicts, discover_options
-from relocfw.app.tasks import compare, diagnose, export, localize, plugins, relocalize, train
+from relocfw.app.tasks import (
+    compare,
+    diagnose,
+    export,
+    localize,
+    plugins,
+    relocalize,
+    serve,
+    train,
+)
 from relocfw.app.torchrun import join_torchrun, leave_torchrun
 from relocfw.core.errors import ConfigError, RelocfwError
 from relocfw.model.distributed import World
@@ -33,15 +41,9 @@ TASKS: dict[str, TaskRun] = {
     "plugins": plugins.run,
     "diagnose": diagnose.run,
     "export": export.run,
+    "serve": serve.run,
 }
 FULL_ERROR = "HYDRA_FULL_ERROR"  # Hydra's own switch: raise instead of printing
-
-
-def check_common(cfg: DictConfig) -> torch.device:
-    """What every task needs checked first: the device, and the engine's options."""
-    device = pick_device(cfg.device)
-    wanted_engine(cfg, device)
-    return device
 
 
 def run(cfg: DictConfig) -> None:

@@ -30,6 +30,7 @@ class Task(Enum):
     plugins = "plugins"
     diagnose = "diagnose"
     export = "export"
+    serve = "serve"
 
 
 class Scoring(Enum):
@@ -117,6 +118,21 @@ class LocalizeConfig:
 
 
 @dataclass
+class ServeConfig:
+    """task=serve (relocfw.serve.settings.ServeSettings checks the values' ranges)."""
+
+    model: Optional[str] = None  # noqa: UP045
+    host: str = MISSING
+    port: int = MISSING
+    workers: int = MISSING
+    max_pending: int = MISSING
+    max_bytes: int = MISSING
+    max_pixels: int = MISSING
+    token_file: Optional[str] = None  # noqa: UP045
+    retry_after_s: int = MISSING
+
+
+@dataclass
 class OnnxConfig:
     threads: Optional[int] = None  # noqa: UP045
     int8: Int8 = Int8.none
@@ -130,6 +146,13 @@ class ExportConfig:
 
 
 @dataclass
+class CalibrateConfig:
+    share: float = MISSING
+    coverage: float = MISSING
+    bins: int = MISSING
+
+
+@dataclass
 class RelocalizeConfig:
     baselines: List[Baseline] = MISSING  # noqa: UP006
 
@@ -138,13 +161,6 @@ class RelocalizeConfig:
 class DiagnoseConfig:
     curve_queries: int = MISSING
     table3_queries: int = MISSING
-
-
-@dataclass
-class CalibrateConfig:
-    share: float = MISSING
-    coverage: float = MISSING
-    bins: int = MISSING
 
 
 @dataclass
@@ -188,6 +204,7 @@ class RelocfwConfig:
     query: QueryConfig = field(default_factory=QueryConfig)
     localize: LocalizeConfig = field(default_factory=LocalizeConfig)
     export: ExportConfig = field(default_factory=ExportConfig)
+    serve: ServeConfig = field(default_factory=ServeConfig)
     relocalize: RelocalizeConfig = field(default_factory=RelocalizeConfig)
     calibrate: CalibrateConfig = field(default_factory=CalibrateConfig)
     # Open, and checked where it is read (relocfw.app.tasks.compare): a typed node

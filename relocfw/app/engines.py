@@ -19,6 +19,7 @@ import torch
 from omegaconf import DictConfig
 
 from relocfw.app.config_schema import name_of
+from relocfw.app.devices import pick_device
 from relocfw.core.atomic_files import atomic_write
 from relocfw.core.errors import ConfigError
 from relocfw.core.pipeline import Relocalizer
@@ -192,3 +193,10 @@ def keep_graphs_beside(relocalizer: Relocalizer, checkpoint: Path, model: Path) 
             if source.is_file():
                 with atomic_write(graph_path(model, KINDS[kind], mode), "wb") as stream:
                     stream.write(source.read_bytes())
+
+
+def check_common(cfg: DictConfig) -> torch.device:
+    """What every task needs checked first: the device, and the engine's options."""
+    device = pick_device(cfg.device)
+    wanted_engine(cfg, device)
+    return device

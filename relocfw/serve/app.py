@@ -1,0 +1,214 @@
+"""The FastAPI application: three endpoints over a loaded model's queue.
+
+Every refusal is one JSON object {"error": "one line"} with a 4xx status, raised
+before any work it would waste: the token (401), the content type (415), the query
+fields (422), a full queue (503), the body's size (413) and its image (400). The
+service goes on serving after each.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from fastapi import FastAPI, Query, Request
+from fastapi.concurrency import run_in_threadpool
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException
+
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.version import VERSION
+from relocfw.serve.answers import ModelInfo, Timings, answer_json
+from relocfw.serve.auth import BearerToken
+from relocfw.serve.fields import FieldError, parse_fields
+from relocfw.serve.images import MediaTypeError, check_content_type, decode_image
+from relocfw.serve.queue import QueryQueue, QueueFullError
+from relocfw.serve.settings import ServeSettings
+from relocfw.serve.workers import Query as LocalizeQuery
+
+# A client whose request was dropped because it left (nginx's code; it never sees it).
+CLIENT_LEFT = 499
+IMAGE_BODY = {"schema": {"type": "string", "format": "binary"}}
+LOCALIZE_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": "the encoded image, PNG or JPEG",
+        "content": {"image/png": IMAGE_BODY, "image/jpeg": IMAGE_BODY},
+    }
+}
+
+
+class BodyTooLargeError(DataError):
+    """The body is over serve.max_bytes (answered 413)."""
+
+
+class UnauthorizedError(DataError):
+    """No token, or not the one in serve.token_file (answered 401)."""
+
+
+@dataclass(frozen=True)
+class Service:
+    """What the application serves."""
+
+    settings: ServeSettings
+    queue: QueryQueue
+    info: ModelInfo
+    token: BearerToken | None = None
+
+
+def refusal(status: int, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
+    return JSONResponse({"error": message}, status_code=status, headers=headers)
+
+
+def status_of(error: Exception) -> int:
+    """The 4xx of one of relocfw's refusals."""
+    for kind, status in (
+        (UnauthorizedError, 401),
+        (BodyTooLargeError, 413),
+        (MediaTypeError, 415),
+        (FieldError, 422),
+        (ConfigError, 422),
+    ):
+        if isinstance(error, kind):
+            return status
+    return 400
+
+
+async def read_body(request: Request, max_bytes: int) -> bytes:
+    """The body, refused (BodyTooLargeError) as soon as it is known to pass `max_bytes`:
+    from Content-Length before reading, else while reading, never held whole."""
+    declared = request.headers.get("content-length", "")
+    if declared.isdigit() and int(declared) > max_bytes:
+        raise BodyTooLargeError(f"the body is {declared} bytes, over serve.max_bytes={max_bytes}")
+    chunks, size = [], 0
+    async for chunk in request.stream():
+        size += len(chunk)
+        if size > max_bytes:
+            raise BodyTooLargeError(f"the body is over serve.max_bytes={max_bytes} bytes")
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+async def client_left(request: Request) -> None:
+    """Returns when the client disconnects (the body is read by then: the next
+    message the server gives is the disconnect)."""
+    while (await request.receive())["type"] != "http.disconnect":
+        pass
+
+
+def create_app(service: Service) -> FastAPI:
+    """The application; its lifespan's end waits for the workers' queries to finish."""
+
+    @asynccontextmanager
+    async def lifespan(_: FastAPI) -> AsyncIterator[None]:
+        yield
+        await run_in_threadpool(service.queue.workers.shutdown)
+
+    app = FastAPI(
+        title="relocfw",
+        version=VERSION,
+        summary="6-DoF camera pose of one image against a loaded map",
+        lifespan=lifespan,
+    )
+
+    @app.exception_handler(DataError)
+    @app.exception_handler(ConfigError)
+    async def refused(_: Request, error: Exception) -> JSONResponse:
+        headers = {"WWW-Authenticate": "Bearer"} if isinstance(error, UnauthorizedError) else None
+        return refusal(status_of(error), str(error), headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid(_: Request, error: RequestValidationError) -> JSONResponse:
+        first = error.errors()[0]
+        where = ".".join(str(part) for part in first.get("loc", ()))
+        return refusal(422, f"{where}: {first.get('msg', 'invalid')}")
+
+    @app.exception_handler(HTTPException)
+    async def http_error(_: Request, error: HTTPException) -> JSONResponse:
+        return refusal(error.status_code, str(error.detail), error.headers)
+
+    def check_token(request: Request) -> None:
+        if service.token is not None and not service.token.allows(
+            request.headers.get("authorization")
+        ):
+            raise UnauthorizedError(
+                "this service needs a bearer token: send `Authorization: Bearer TOKEN` "
+                "with the token of its serve.token_file"
+            )
+
+    @app.get("/v1/health", summary="Ready, and how full the queue is (no token needed)")
+    async def health() -> dict[str, Any]:
+        counts = service.queue.counts
+        return {
+            "status": "ready",
+            "model_id": service.info.model_id,
+            "workers": service.settings.workers,
+            "pending": counts.pending,
+            "max_pending": service.settings.max_pending,
+            "answered": counts.answered,
+            "refused": counts.refused,
+            "abandoned": counts.abandoned,
+        }
+
+    @app.get("/v1/model", summary="What the service runs")
+    async def model(request: Request) -> dict[str, Any]:
+        check_token(request)
+        return service.info.as_json()
+
+    @app.post(
+        "/v1/localize",
+        summary="Camera-to-world pose of one image",
+        openapi_extra=LOCALIZE_BODY,
+    )
+    async def localize(
+        request: Request,
+        fx: Annotated[float | None, Query(description="focal length x, pixels")] = None,
+        fy: Annotated[float | None, Query(description="focal length y, pixels")] = None,
+        cx: Annotated[float | None, Query(description="principal point x, pixels")] = None,
+        cy: Annotated[float | None, Query(description="principal point y, pixels")] = None,
+        name: Annotated[str | None, Query(description="frame name, for refine=sequence")] = None,
+    ) -> Response:
+        # The typed parameters document the fields; the query string is read by
+        # parse_fields, which refuses unknown and repeated fields too.
+        started = time.perf_counter()
+        check_token(request)
+        check_content_type(request.headers.get("content-type"))
+        fields = parse_fields(request.query_params.multi_items())
+        queue = service.queue
+        retry = {"Retry-After": str(service.settings.retry_after_s)}
+        full = (
+            f"the service is busy: {queue.max_pending} queries are waiting or running "
+            "(serve.max_pending); retry after the Retry-After seconds"
+        )
+        try:
+            queue.reserve()  # before the body is read: decoded images count too
+        except QueueFullError:
+            return refusal(503, full, retry)
+        handed_over = False
+        try:
+            body = await read_body(request, service.settings.max_bytes)
+            image = await run_in_threadpool(decode_image, body, service.settings.max_pixels)
+            camera = fields.camera(image.shape[1], image.shape[0])
+            decoded = time.perf_counter()
+            handed_over = True
+            answer = await queue.run(
+                LocalizeQuery(image, camera, fields.name), client_left(request)
+            )
+        finally:
+            if not handed_over:
+                queue.release()
+        if answer is None:
+            return Response(status_code=CLIENT_LEFT)
+        finished = time.perf_counter()
+        timings = Timings(
+            decode_ms=1000.0 * (decoded - started),
+            queue_ms=1000.0 * (finished - decoded),
+            total_ms=1000.0 * (finished - started),
+        )
+        return JSONResponse(answer_json(answer, service.info, timings, fields.name))
+
+    return app

@@ -1,0 +1,96 @@
+"""The bounded queue in front of the workers (serve.max_pending).
+
+A request holds its place from before its body is read until its worker is done with
+its query, whether or not its caller still waits: the count covers the images being
+decoded and what the workers owe, so the bound holds for both. One more than
+max_pending is refused at once (QueueFullError, answered 503 with Retry-After), never
+kept in an unbounded backlog. A caller that disconnects while its query waits takes
+the query out (it never runs); one whose query already runs leaves it to finish,
+unread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+from collections.abc import Awaitable
+from dataclasses import dataclass
+
+from relocfw.core.values import Localization
+from relocfw.serve.workers import Query, Workers
+
+
+class QueueFullError(Exception):
+    """max_pending queries are admitted already."""
+
+
+@dataclass
+class QueueCounts:
+    """What the queue has done, for GET /v1/health."""
+
+    pending: int = 0
+    answered: int = 0
+    refused: int = 0
+    abandoned: int = 0
+
+
+class QueryQueue:
+    """Admits at most `max_pending` queries at once and hands them to the workers.
+
+    Used from the event loop's thread only, so its counts need no lock; the workers'
+    completions come back to it through the loop.
+    """
+
+    def __init__(self, workers: Workers, max_pending: int) -> None:
+        self.workers = workers
+        self.max_pending = max_pending
+        self.counts = QueueCounts()
+
+    def reserve(self) -> None:
+        """Take a place for a request before its body is read, so the images being
+        decoded count against max_pending too; the place goes to its job (`run`) or
+        back (`release`).
+
+        Raises:
+            QueueFullError: max_pending places are taken.
+        """
+        if self.counts.pending >= self.max_pending:
+            self.counts.refused += 1
+            raise QueueFullError
+        self.counts.pending += 1
+
+    async def run(self, query: Query, client_left: Awaitable[None]) -> Localization | None:
+        """The answer to a query that holds a place (`reserve`), or None when the caller
+        left before it came; the place is freed when the job is done, not before."""
+        loop = asyncio.get_running_loop()
+        try:
+            job = self.workers.submit(query)
+        except BaseException:  # the workers are shut down: no job holds the place
+            self.release()
+            raise
+        job.add_done_callback(lambda _: self.release_from(loop))
+        answer = asyncio.wrap_future(job)
+        watch = asyncio.ensure_future(client_left)
+        try:
+            done, _ = await asyncio.wait({answer, watch}, return_when=asyncio.FIRST_COMPLETED)
+        except asyncio.CancelledError:
+            answer.cancel()
+            raise
+        finally:
+            watch.cancel()
+        if answer in done:
+            self.counts.answered += 1
+            return answer.result()
+        answer.cancel()  # cancels the job too where it has not started
+        self.counts.abandoned += 1
+        return None
+
+    def release_from(self, loop: asyncio.AbstractEventLoop) -> None:
+        """A job is done (answered, failed or cancelled): free its place, on the loop."""
+        # A closed loop: the service is gone, there is nothing left to count.
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(self.release)
+
+    def release(self) -> None:
+        """Free a place: its job is done, or its request ended before it had one."""
+        self.counts.pending -= 1
