@@ -35,7 +35,8 @@ def test_the_structure_rows_beat_an_untrained_network(tmp_path):
     result = relocfw([*args, f"hydra.run.dir={run_dir}"], tmp_path)
     assert result.returncode == 0, result.stderr
     header = (run_dir / "comparison.csv").read_text().splitlines()[0]
-    for row in ("Structure (features + depth)", "Structure RGB-only", "PoseNet + features"):
+    rows = ("Structure (features + depth)", "Structure RGB-only", "PoseNet + features")
+    for row in (*rows, "Relative pose (keyframes)"):
         assert row in header
     summary = {s["method"]: s for s in json.loads((run_dir / "summary_synthetic.json").read_text())}
     depth, network = summary["Structure (features + depth)"], summary["PoseNet"]
@@ -43,8 +44,11 @@ def test_the_structure_rows_beat_an_untrained_network(tmp_path):
     assert depth["median_position_m"] < 0.1 < network["median_position_m"]
     assert depth["refine_fell_back"] < 6 and "refine_median_ms_solve" in depth
     assert "refine_fell_back" not in network
-    # The structure is built once per kind (depth, triangulated) and cached.
-    assert len(list((tmp_path / "cache" / "structure").glob("*.npz"))) == 2
+    relative = summary["Relative pose (keyframes)"]
+    assert "refine_fell_back" in relative and "refine_median_ms_solve" in relative
+    # The structure is built once per kind (depth, triangulated, refine=relative's
+    # keyframe features) and cached.
+    assert len(list((tmp_path / "cache" / "structure").glob("*.npz"))) == 3
 
 
 def test_a_dataset_without_cameras_is_refused_by_name(tiny_scene, tmp_path):
