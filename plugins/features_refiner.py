@@ -20,7 +20,8 @@ stream (relocfw.structure.tracking_prior: the name's part before its last "/")
 arrive in order (evaluation, task=localize), so each query whose stream has a
 confident pose is matched against the keyframes near it. When that fails (the track
 is lost: a fast turn, a blurred frame) the same query is retried by descriptor
-retrieval, so tracking never answers worse than keyframes=descriptor would; its
+retrieval, so a lost track costs one more solve, not the answer (a tracked solve that
+succeeds with a wrong pose is kept, and becomes the next frame's prior); its
 seconds then add both attempts per part, with the retry's in "tracking_retry". A
 stream without a confident pose (its first frame, or after a fallback) starts from
 retrieval; `reset` forgets every stream.
@@ -292,8 +293,7 @@ class FeaturesRefiner(PoseRefiner):
         if self.keyframes != "track":
             return refined
         if refined.fell_back and prior is not None:
-            # The track is lost on this frame: the same query by retrieval, so tracking
-            # never answers worse than keyframes=descriptor would.
+            # The track is lost on this frame: the same query again, by retrieval.
             started = time.perf_counter()
             retry, _ = self.attempt(query, camera, None, features)
             seconds = dict(refined.seconds)

@@ -4,7 +4,7 @@ from the end of the training split, before the network trains or the map is buil
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from omegaconf import DictConfig
@@ -23,6 +23,30 @@ MAX_SHARE = 0.5
 Split = tuple[list[Frame], list[np.ndarray]]
 
 
+@dataclass(frozen=True)
+class CalibrateOptions:
+    """The `calibrate:` options, checked."""
+
+    share: float
+    coverage: float
+    bins: int
+
+
+def calibrate_options(cfg: DictConfig) -> CalibrateOptions:
+    """The `calibrate:` options, each checked and named as the command line spells it
+    (before any image is read or model trained, also when share is 0: a typo in a
+    coverage is an error, not a silent default)."""
+    calibrate = cfg.get("calibrate") or {}
+    coverage = float(calibrate.get("coverage", 0.9))
+    if not 0.0 < coverage < 1.0:
+        raise ConfigError(f"calibrate.coverage must be between 0 and 1, got {coverage}")
+    bins = integer_at_least("calibrate.bins", calibrate.get("bins", 3), 1)
+    share = float(calibrate.get("share", 0.0) or 0.0)
+    if share != 0.0:
+        share = positive_number("calibrate.share", share, most=MAX_SHARE)
+    return CalibrateOptions(share, coverage, bins)
+
+
 def carve_validation(cfg: DictConfig, train: Split) -> tuple[Split, Calibration | None]:
     """The training split without its validation block, and the block (None when
     calibrate.share is 0).
@@ -34,15 +58,10 @@ def carve_validation(cfg: DictConfig, train: Split) -> tuple[Split, Calibration 
     put every validation frame between two map images a frame apart, and bound errors
     far smaller than a new query's.)
     """
-    calibrate = cfg.get("calibrate") or {}
-    share = float(calibrate.get("share", 0.0) or 0.0)
-    if share == 0.0:
+    options = calibrate_options(cfg)
+    if options.share == 0.0:
         return train, None
-    share = positive_number("calibrate.share", share, most=MAX_SHARE)
-    coverage = float(calibrate.get("coverage", 0.9))
-    if not 0.0 < coverage < 1.0:
-        raise ConfigError(f"calibrate.coverage must be between 0 and 1, got {coverage}")
-    bins = integer_at_least("calibrate.bins", calibrate.get("bins", 3), 1)
+    share, coverage = options.share, options.coverage
     frames, images = train
     held_out = math.ceil(share * len(frames))
     needed = max(MIN_VALIDATION_FRAMES, math.ceil(coverage / (1.0 - coverage) - 1e-9))
@@ -58,10 +77,10 @@ def carve_validation(cfg: DictConfig, train: Split) -> tuple[Split, Calibration 
         f"{frames[-1].name}) are held out of training and the map, to calibrate "
         f"{coverage:.0%} error bounds"
     )
-    block = Calibration(frames[kept:], images[kept:], coverage, bins)
+    block = Calibration(frames[kept:], images[kept:], coverage, options.bins)
     return (list(frames[:kept]), list(images[:kept])), block
 
 
-def held_out_names(calibration: Calibration | None) -> Sequence[str]:
-    """The validation block's frame names (for a model file's metadata)."""
-    return [] if calibration is None else [frame.name for frame in calibration.frames]
+def held_out_count(calibration: Calibration | None) -> int:
+    """How many frames the validation block holds (for a model file's metadata)."""
+    return 0 if calibration is None else len(calibration.frames)

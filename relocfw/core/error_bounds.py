@@ -2,9 +2,15 @@
 
 A model answers held-out validation queries whose true poses are known; their position
 and orientation errors calibrate a bound that a new answer's error stays under with
-probability at least `coverage` (e.g. 90%), assuming the new query and the validation
+probability of about `coverage` (e.g. 90%), assuming the new query and the validation
 queries are exchangeable (drawn alike). Nothing is assumed about the error's
-distribution: the bound is an order statistic of the validation errors.
+distribution: the bound is an order statistic of the validation errors. "About":
+within a group of fixed membership the finite-sample rank below gives at least
+`coverage`; the bins' edges, though, are quantiles of the same validation signals
+they sort, so the per-bin guarantee is approximate, off by up to about one answer in
+a bin (5 points at the least bin of 20). Queries farther from the map than the
+validation block are not exchangeable with it: their coverage is measured, not
+promised (relocfw.report.calibration).
 
 The bound adapts to how much an answer can be trusted. A trust signal (the refiner's
 confidence, the spread of sampled answers; higher = more trusted) sorts the answers
@@ -17,15 +23,16 @@ one. The groups of one calibration:
   into equal-count bins at signal quantiles (`edges`). A signal equal to an edge
   belongs to the bin above it, the more trusted one (np.searchsorted, side="right",
   in both calibration and lookup).
-- the untrusted group: answers that fell back, or have no finite signal while the
-  signal splits the answers into two or more bins.
+- the untrusted group: answers the caller marks untrusted (relocfw.core.trust_signal:
+  fell back, or no finite confidence or spread under those signals), and answers with
+  no finite signal while the signal splits the answers into two or more bins.
 
-With one bin the signal ranks nothing, so an answer without a finite signal that did
-not fall back joins that one bin rather than the untrusted group. That is what makes
-signal "none" work: when no validation answer had a finite signal (a plain network
-without a spread), every answer that did not fall back is bound by the one marginal
-bin. Calibration and lookup share this rule (`_groups`), so a new answer is grouped
-exactly as a validation answer would have been, which is what the guarantee needs.
+With one bin the signal ranks nothing, so an answer without a finite signal that the
+caller did not mark untrusted joins that one bin. That is what makes signal "none"
+work: no answer has a signal (a plain network without a spread), and every answer is
+bound by the one marginal bin. Calibration and lookup share this rule (`_groups`), so
+a new answer is grouped exactly as a validation answer would have been, which is what
+the guarantee needs.
 """
 
 from __future__ import annotations

@@ -188,9 +188,10 @@ class Relocalizer:
     ) -> Relocalizer:
         """This pipeline with another network answering for the same one (e.g. its ONNX
         export), other options and/or another search: the same fitted map, map poses,
-        metadata and error bounds. The refiner is the same object too, history included (a
-        sequence refiner's frames of each recording): query one of the two pipelines,
-        or call `refiner.reset()` before switching, as evaluation does."""
+        metadata (and error bounds, unless `options` or `search` change). The refiner
+        is the same object too, history included (a sequence refiner's frames of each
+        recording): query one of the two pipelines, or call `refiner.reset()` before
+        switching, as evaluation does."""
         swapped = Relocalizer(
             backbone or self.backbone,
             self.index,
@@ -201,7 +202,10 @@ class Relocalizer:
         )
         swapped.map_poses = self.map_poses
         swapped.metadata = self.metadata
-        swapped.bounds = self.bounds
+        # Other options or another search give other answers than the bounds were
+        # calibrated on; another network answering for the same one (an engine) not.
+        same_answers = options in (None, self.options) and search in (None, self.search)
+        swapped.bounds = self.bounds if same_answers else None
         return swapped
 
     def with_backbone(self, backbone: Backbone) -> Relocalizer:

@@ -17,20 +17,20 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from relocfw.core.error_bounds import SIGNALS
 from relocfw.core.values import Localization
 
 if TYPE_CHECKING:
     from relocfw.core.error_bounds import ErrorBounds
 
-CONFIDENCE = "refiner confidence"
-SPREAD = "spread"
-NONE = "none"
+CONFIDENCE, SPREAD, NONE = SIGNALS
 
 
 def signal_name_of(answers: Sequence[Localization], refined: bool) -> str:
     """The signal a method's answers carry: the refiner's confidence where it has a
-    refiner, else the spread where any answer was sampled, else none."""
-    if refined:
+    refiner that gave any answer a finite one (refine=sequence gives none), else the
+    spread where any answer was sampled, else none."""
+    if refined and any(math.isfinite(a.refine_confidence) for a in answers):
         return CONFIDENCE
     if any(math.isfinite(a.position_spread) for a in answers):
         return SPREAD

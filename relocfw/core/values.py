@@ -102,8 +102,8 @@ class Localization:
     refine_seconds: dict[str, float] = field(default_factory=dict)
     # Calibrated error bounds (relocfw.core.error_bounds): the answer's position error
     # (map units) and orientation error (deg) stay below these for the model's stated
-    # coverage of answers like it; inf: too few validation answers to bound one like
-    # it; NaN: the model has no calibrated bounds.
+    # coverage of answers like it; inf: the validation answers like it give no finite
+    # bound (too few, or too many failed); NaN: the model has no calibrated bounds.
     position_bound: float = float("nan")
     orientation_bound_deg: float = float("nan")
 

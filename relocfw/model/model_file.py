@@ -28,6 +28,7 @@ from relocfw.core.pipeline import Relocalizer
 from relocfw.core.plugin_registry import registered_targets
 from relocfw.core.query_options import QueryOptions
 from relocfw.core.refinement import PoseRefiner
+from relocfw.core.trust_signal import CONFIDENCE
 from relocfw.model.checkpoints import read_torch_file, save_atomic
 from relocfw.model.older_formats import stored_options
 from relocfw.model.onnx_backbone import trained_network
@@ -63,6 +64,9 @@ PART_INTERFACES: dict[str, type] = {
     "refine": PoseRefiner,
 }
 REQUIRED_PARTS = ("backbone", "index", "crop")
+# Query options that change how work is grouped, not the answers (Relocalizer
+# .localize_many answers as localize does): overriding them keeps a file's error bounds.
+ANSWER_NEUTRAL_OPTIONS = frozenset({"batch_size", "queries_at_once"})
 
 
 def class_path(obj: object) -> str:
@@ -197,10 +201,20 @@ def save_model(
         payload["map_poses"] = torch.tensor(
             [[*p.position, *p.quaternion] for p in relocalizer.map_poses], dtype=torch.float64
         )
-    if relocalizer.bounds is not None:  # calibrated error bounds (calibrate.share)
+    if bounds_fit(relocalizer, "refine" in parts):  # calibrated (calibrate.share)
         payload["error_bounds"] = relocalizer.bounds.state()
     save_atomic(payload, Path(path))
     return Path(path)
+
+
+def bounds_fit(relocalizer: Relocalizer, refiner_stored: bool) -> bool:
+    """Whether the relocalizer's error bounds describe the answers a loaded file gives:
+    bounds ranked by the refiner's confidence do not, where the refiner is left out
+    (the loaded model answers with the network's pose and no confidence)."""
+    bounds = relocalizer.bounds
+    if bounds is None:
+        return False
+    return refiner_stored or bounds.signal != CONFIDENCE
 
 
 def stores_refiner(relocalizer: Relocalizer) -> bool:
@@ -278,7 +292,22 @@ def load_model(
     if map_poses is not None:
         relocalizer.map_poses = map_poses
     relocalizer.metadata = metadata
-    relocalizer.bounds = stored_bounds(payload, path)
+    bounds = stored_bounds(payload, path)
+    if bounds is not None and bounds.signal == CONFIDENCE and refiner is None:
+        raise DataError(
+            f"{path}: damaged model file (error_bounds are ranked by a refiner's "
+            "confidence, and the file has no refiner)"
+        )
+    # Options that change the answers also change their errors: bounds calibrated with
+    # the file's options do not describe them (batch sizes only group the work).
+    changed = [
+        key
+        for key, value in given.items()
+        if key not in ANSWER_NEUTRAL_OPTIONS and stored.get(key) != value
+    ]
+    relocalizer.bounds = None if changed else bounds
+    if changed and bounds is not None:
+        relocalizer.metadata = {**metadata, "bounds_dropped_for": changed}
     return relocalizer
 
 

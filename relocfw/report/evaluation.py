@@ -14,6 +14,7 @@ from relocfw.core.interfaces import Backbone
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.progress import Progress
 from relocfw.core.sampling import configured_samples
+from relocfw.core.trust_signal import CONFIDENCE
 from relocfw.core.values import Crop, Localization, Pose
 from relocfw.data.frames import Frame
 from relocfw.report.metrics import accuracy_metrics, failed_as_infinite
@@ -201,11 +202,14 @@ def bound_columns(result: MethodResult) -> dict[str, float]:
         "both_bounds_coverage": float(np.mean(position_held & orientation_held)),
         "median_position_bound_m": float(np.median(position_bounds)),
         "median_orientation_bound_deg": float(np.median(orientation_bounds)),
-        "infinite_bounds": int(np.sum(~np.isfinite(position_bounds))),
+        # An infinite bound (too little evidence) holds by definition: how many there
+        # were says how much of the coverage is that.
+        "infinite_position_bounds": int(np.sum(~np.isfinite(position_bounds))),
+        "infinite_orientation_bounds": int(np.sum(~np.isfinite(orientation_bounds))),
     }
 
 
-CONFIDENCE_SIGNAL = "refiner confidence"
+CONFIDENCE_SIGNAL = CONFIDENCE  # relocfw.core.trust_signal's name of the refiner's signal
 
 
 @dataclass(frozen=True)

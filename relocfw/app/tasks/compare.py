@@ -27,7 +27,7 @@ from relocfw.app.results import run_method, safe_name, write_results
 from relocfw.app.spellings import rewrite
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.training_runs import prepare_model
-from relocfw.app.validation_block import carve_validation
+from relocfw.app.validation_block import calibrate_options, carve_validation
 from relocfw.core.errors import ConfigError
 from relocfw.core.json_output import strict_json
 from relocfw.core.options import integer_at_least
@@ -165,6 +165,20 @@ def plan(
     return plans, rows
 
 
+def one_calibration(plans: Mapping[tuple, tuple[DictConfig, Any]]) -> None:
+    """Refuse rows whose `calibrate:` options differ: the validation block is carved
+    once per scene, before the rows train, so it cannot differ per row."""
+    found = {}
+    for (_, _, name), (method_cfg, _) in plans.items():
+        found.setdefault(calibrate_options(method_cfg), name)
+    if len(found) > 1:
+        names = ", ".join(repr(name) for name in found.values())
+        raise ConfigError(
+            f"compare rows {names} set different calibrate.* options; the validation "
+            "block is one per scene: set calibrate.* on the command line, for every row"
+        )
+
+
 def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     """Every method of compare.methods on every scene, for every training seed.
 
@@ -183,6 +197,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     crop_seeds = seed_list(cfg, "crop_seeds") or []
     quiet = bool(cfg.quiet)
     plans, rows = plan(methods, scenes, seeds)
+    one_calibration(plans)
     for (_, _, name), (method_cfg, _) in plans.items():
         try:  # a row's engine options, before any row trains
             wanted_engine(method_cfg, device)

@@ -216,6 +216,14 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     relocalizer = load_for_localize(cfg, device)
     if relocalizer.bounds is not None:  # written per frame in localization.csv
         print(f"error bounds: {relocalizer.bounds.describe()}")
+    dropped = relocalizer.metadata.get("bounds_dropped_for")
+    if dropped:
+        print(
+            f"note: the model file's error bounds are left out: they were calibrated with "
+            f"the file's {', '.join(f'query.{key}' for key in dropped)}, which this command "
+            "changes (the answers, and so their errors, change with it)",
+            file=sys.stderr,
+        )
     spec = str(cfg.localize.images or "")
     topic = str(cfg.localize.topic) if cfg.localize.topic else None
     frames = open_frames(spec, topic)

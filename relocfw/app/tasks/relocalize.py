@@ -16,7 +16,7 @@ from relocfw.app.methods import centre_label, dataset_settings, scene_name
 from relocfw.app.results import Split, run_method, write_results
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.tasks.train import trained
-from relocfw.app.validation_block import held_out_names
+from relocfw.app.validation_block import held_out_count
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.query_options import QueryOptions
 from relocfw.core.version import VERSION
@@ -101,7 +101,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         "scene": scene_name(cfg, choices),
         "dataset_settings": dataset_settings(cfg),
         "map_images": len(done.train[0]),
-        "validation_images": len(held_out_names(done.calibration)),
+        "validation_images": held_out_count(done.calibration),
         "checkpoint": str(done.checkpoint),
         "relocfw_version": VERSION,
     }

@@ -17,7 +17,7 @@ from omegaconf import DictConfig
 from relocfw.app.methods import Method, build, build_method
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.training_runs import prepare_model
-from relocfw.app.validation_block import carve_validation
+from relocfw.app.validation_block import calibrate_options, carve_validation
 from relocfw.data.frames import Frame
 from relocfw.model.distributed import World
 from relocfw.report.calibration import Calibration
@@ -50,6 +50,7 @@ def trained(
     choices = HydraConfig.get().runtime.choices
     run_dir = Path(HydraConfig.get().runtime.output_dir)
     method = build_method(cfg, choices)
+    calibrate_options(cfg)  # before any image is read
     dataset = build(cfg, "dataset", choices["dataset"])
     quiet = bool(cfg.quiet)
     # Under torchrun, rank 0 loads (and renders, for the synthetic scene) first.
