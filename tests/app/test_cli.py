@@ -407,7 +407,7 @@ def test_the_main_job_has_no_option_outside_its_groups():
     assert plain == {"task", "seed", "device", "engine", "cache_dir", "quiet", "k"}
     assert set(cfg) - plain == {
         *("backbone", "index", "crop", "refine", "dataset", "query", "localize", "export"),
-        *("relocalize", "compare", "diagnose", "train", "onnx"),
+        *("relocalize", "compare", "diagnose", "train", "onnx", "serve", "calibrate"),
     }
     assert (name_of(cfg.engine), name_of(cfg.onnx.int8)) == ("auto", "none")
     assert all(value is None for value in cfg.query.values())  # each task's default
