@@ -52,7 +52,7 @@ from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
-from relocfw.core.standardise import ZScore, check_features, k_nearest
+from relocfw.core.standardise import ZScore, check_features
 from relocfw.core.values import Pose
 from relocfw.structure import (
     MapView,
@@ -67,7 +67,9 @@ from relocfw.structure.map_state import map_of_state, map_state
 from relocfw.structure.refiner_inputs import (
     builder_parameters,
     has_depth_file,
+    keyframes_by_descriptor,
     map_camera,
+    query_camera,
     structure_settings,
 )
 from relocfw.structure.refiner_state import (
@@ -272,19 +274,12 @@ class FeaturesRefiner(PoseRefiner):
         count = min(self.count, len(self.poses))
         if prior is not None:
             return list(keyframes_by_pose(self.poses, prior, count))
-        features = check_features(np.asarray(query.descriptor)[None], self.points.shape[1])
-        _, indices = k_nearest(self.zscore(features), self.points, count)
-        return [int(i) for i in indices[0]]
+        return keyframes_by_descriptor(self.zscore, self.points, query.descriptor, count)
 
     def refine(self, query: RefineQuery) -> Refined:
         if not hasattr(self, "structure"):
             raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
-        camera = query.camera or self.camera
-        if camera is None:
-            raise ConfigError(
-                "refine=features needs the query's camera: the map images have no single "
-                "camera, so pass camera= to localize"
-            )
+        camera = query_camera("refine=features", query.camera, self.camera)
         if self.keyframes == "pose" and not query.network_pose.is_finite:
             # No map image is near a NaN pose; the network's answer stands, flagged.
             return Refined(query.network_pose, 0.0, True, {"retrieval": 0.0})

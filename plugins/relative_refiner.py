@@ -52,12 +52,17 @@ from relocfw.core.imaging import check_rgb_image
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.progress import Progress
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
-from relocfw.core.standardise import ZScore, check_features, k_nearest
+from relocfw.core.standardise import ZScore, check_features
 from relocfw.core.values import Pose
 from relocfw.structure.features import extract_rootsift
 from relocfw.structure.map_state import checked_tensor, map_of_state, map_state
 from relocfw.structure.matching import match_against_views
-from relocfw.structure.refiner_inputs import image_digest
+from relocfw.structure.refiner_inputs import (
+    image_digest,
+    keyframes_by_descriptor,
+    map_camera,
+    query_camera,
+)
 from relocfw.structure.relative_pose import (
     QueryRay,
     locate_by_rays,
@@ -170,14 +175,14 @@ class RelativeRefiner(PoseRefiner):
         return {key: getattr(self, key) for key in (*INTEGER_OPTIONS, *NUMBER_OPTIONS)}
 
     def check_map(self, frames: Sequence[object]) -> None:
-        map_camera(frames)
+        map_camera(frames, "refine=relative")
 
     def fit(self, views: Sequence[MapImage], descriptors: np.ndarray, quiet: bool = True) -> None:
         quiet = quiet or self.quiet
         features = check_features(descriptors)
         if len(views) != len(features):
             raise DataError(f"fit: {len(views)} map images but {len(features)} descriptors")
-        camera = map_camera(views)
+        camera = map_camera(views, "refine=relative")
         zscore = ZScore().fit(features)
 
         def build() -> StructureMap:
@@ -202,17 +207,10 @@ class RelativeRefiner(PoseRefiner):
     def refine(self, query: RefineQuery) -> Refined:
         if not hasattr(self, "structure"):
             raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
-        camera = query.camera or self.camera
-        if camera is None:
-            raise ConfigError(
-                "refine=relative needs the query's camera: the map images have no single "
-                "camera, so pass camera= to localize"
-            )
+        camera = query_camera("refine=relative", query.camera, self.camera)
         started = time.perf_counter()
         count = min(self.count, len(self.structure))
-        wanted = check_features(np.asarray(query.descriptor)[None], self.points.shape[1])
-        _, nearest = k_nearest(self.zscore(wanted), self.points, count)
-        keyframes = [int(i) for i in nearest[0]]
+        keyframes = keyframes_by_descriptor(self.zscore, self.points, query.descriptor, count)
         retrieved = time.perf_counter()
         check_rgb_image(query.image, "query image")
         height, width = query.image.shape[:2]
@@ -321,16 +319,3 @@ class RelativeRefiner(PoseRefiner):
         self.zscore = zscore
         self.points = points
         self.structure = structure
-
-
-def map_camera(views: Sequence[object]) -> PinholeCamera | None:
-    """The map images' one camera (queries default to it), None where they differ;
-    ConfigError naming the first map image without one (MapImages or Frames)."""
-    for view in views:
-        if getattr(view, "camera", None) is None:
-            raise ConfigError(
-                f"refine=relative needs the camera intrinsics of every map image; "
-                f"{view.name} has none (the dataset gives no intrinsics for it)"
-            )
-    cameras = {view.camera for view in views}
-    return cameras.pop() if len(cameras) == 1 else None

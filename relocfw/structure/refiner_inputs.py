@@ -15,6 +15,7 @@ import numpy as np
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError
 from relocfw.core.refinement import MapImage
+from relocfw.core.standardise import ZScore, check_features, k_nearest
 from relocfw.structure.structure_map import build_by_triangulation, median_camera_spacing
 
 # On a map that is not metric, the smallest triangulation baseline as a share of the
@@ -85,15 +86,39 @@ def has_depth_file(frame: object) -> bool:
     return path is not None and Path(path).is_file()
 
 
-def map_camera(views: Sequence[object]) -> PinholeCamera | None:
+def map_camera(views: Sequence[object], refiner: str = "refine=features") -> PinholeCamera | None:
     """The map images' one camera (queries default to it), None where they differ;
-    ConfigError naming the first map image without one (views: anything with `name`
-    and `camera`, MapImages or relocfw.data.frames.Frames)."""
+    ConfigError naming the `refiner` and the first map image without one (views:
+    anything with `name` and `camera`, MapImages or relocfw.data.frames.Frames)."""
     for view in views:
-        if view.camera is None:
+        if getattr(view, "camera", None) is None:
             raise ConfigError(
-                f"refine=features needs the camera intrinsics of every map image; "
+                f"{refiner} needs the camera intrinsics of every map image; "
                 f"{view.name} has none (the dataset gives no intrinsics for it)"
             )
     cameras = {view.camera for view in views}
     return cameras.pop() if len(cameras) == 1 else None
+
+
+def query_camera(
+    refiner: str, query: PinholeCamera | None, map_camera: PinholeCamera | None
+) -> PinholeCamera:
+    """The camera a query is solved with: its own, else the map's one camera; a
+    ConfigError naming the `refiner` where there is neither."""
+    camera = query or map_camera
+    if camera is None:
+        raise ConfigError(
+            f"{refiner} needs the query's camera: the map images have no single "
+            "camera, so pass camera= to localize"
+        )
+    return camera
+
+
+def keyframes_by_descriptor(
+    zscore: ZScore, points: np.ndarray, descriptor: np.ndarray, count: int
+) -> list[int]:
+    """The `count` map images whose z-scored descriptors (`points`) are nearest to the
+    query crop's `descriptor`, nearest first."""
+    wanted = check_features(np.asarray(descriptor)[None], points.shape[1])
+    _, nearest = k_nearest(zscore(wanted), points, count)
+    return [int(i) for i in nearest[0]]
