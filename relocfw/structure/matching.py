@@ -9,6 +9,12 @@ byte; nothing loops over descriptors in Python. A match (i, j) is kept when
   descriptor that is merely close to everything), and
 - Lowe's ratio test passes: nearest distance < ratio x second-nearest distance
   (Lowe, IJCV 2004: a distinctive match is much closer than the next best one).
+
+Matched against several views, one query keypoint may match in each of them; those
+are several observations of ONE piece of the query's evidence. `one_match_per_query`
+keeps each query keypoint's best match (the smallest descriptor distance; a tie goes
+to the earlier view, i.e. the better-retrieved keyframe), so what a solver counts as
+inliers counts distinct query keypoints, not rows.
 """
 
 from __future__ import annotations
@@ -191,3 +197,42 @@ def match_against_views(
             (number, matches_of_distances(distances[:, start:end], ratio))
             for number, (start, end) in enumerate(zip(starts.tolist(), ends.tolist(), strict=True))
         ]
+
+
+def match_distances(query: LocalFeatures, view: LocalFeatures, pairs: np.ndarray) -> np.ndarray:
+    """[K] float32 squared descriptor distances of (query index, view index) pairs."""
+    if len(pairs) == 0:
+        return np.zeros(0, dtype=np.float32)
+    difference = query.descriptors[pairs[:, 0]] - view.descriptors[pairs[:, 1]]
+    return np.einsum("ij,ij->i", difference, difference)
+
+
+def one_match_per_query(query_indices: np.ndarray, distances: np.ndarray) -> np.ndarray:
+    """The rows to keep so each query keypoint contributes once: its best match.
+
+    Args:
+        query_indices: [K] the query keypoint of each candidate row, the rows of the
+            views concatenated in the views' order (e.g. keyframes best retrieved
+            first).
+        distances: [K] each row's descriptor distance (any monotone measure).
+
+    Returns:
+        int64 row indices, one per distinct query keypoint, in keypoint order: the
+        row with the smallest distance, a tie going to the earlier row (the earlier
+        view).
+    """
+    query_indices = np.asarray(query_indices, dtype=np.int64).reshape(-1)
+    distances = np.asarray(distances).reshape(-1)
+    if len(query_indices) != len(distances):
+        raise DataError(
+            f"{len(query_indices)} query indices but {len(distances)} distances; one of "
+            "each per match"
+        )
+    if len(query_indices) == 0:
+        return np.zeros(0, dtype=np.int64)
+    # lexsort sorts by its last key first and is stable: by keypoint, then distance,
+    # then (equal distances) by row, so the first row of each keypoint is its best.
+    order = np.lexsort((distances, query_indices))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = query_indices[order[1:]] != query_indices[order[:-1]]
+    return order[first]

@@ -26,7 +26,12 @@ from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.values import Pose
 from relocfw.structure.absolute_pose import solve_absolute_pose
 from relocfw.structure.features import LocalFeatures, extract_rootsift
-from relocfw.structure.matching import checked_ratio, match_against_views
+from relocfw.structure.matching import (
+    checked_ratio,
+    match_against_views,
+    match_distances,
+    one_match_per_query,
+)
 from relocfw.structure.structure_map import StructureMap, optical_axes, positions_of
 
 TIMED_PARTS = ("features", "matching", "solve")
@@ -99,26 +104,34 @@ def correspondences_of(
     Args:
         structure: the map.
         query: the query's LocalFeatures (N keypoints).
-        keyframes: distinct map image indices (checked_keyframes).
+        keyframes: distinct map image indices (checked_keyframes), best first.
         ratio: Lowe's ratio in (0, 1].
 
     Returns:
         points_2d [K, 2] float64 query pixels and points_3d [K, 3] float64 world
-        points, row i of each one correspondence; a query keypoint matched in two
-        keyframes gives two rows (two observations of its point).
+        points, row i of each one correspondence, in query keypoint order. Each query
+        keypoint gives at most one row: matched in several keyframes (to keypoints
+        with a 3-D point), it keeps the match of the smallest descriptor distance, a
+        tie going to the earlier keyframe (matching.one_match_per_query). Several
+        rows of one keypoint would be one piece of evidence counted several times:
+        they would pass min_inliers and raise the confidence without adding any.
     """
-    matches = match_against_views(query, [structure.features[i] for i in keyframes], ratio)
-    image_rows, world_rows = [], []
+    views = [structure.features[i] for i in keyframes]
+    matches = match_against_views(query, views, ratio)
+    query_rows, world_rows, distances = [], [], []
     for slot, pairs in matches:
         points = structure.points[keyframes[slot]][pairs[:, 1]]
         has_point = np.isfinite(points).all(axis=1)
-        image_rows.append(query.keypoints[pairs[has_point, 0]])
+        query_rows.append(pairs[has_point, 0])
         world_rows.append(points[has_point])
-    if not image_rows:
+        distances.append(match_distances(query, views[slot], pairs[has_point]))
+    if not query_rows:
         return np.zeros((0, 2)), np.zeros((0, 3))
+    indices = np.concatenate(query_rows)
+    kept = one_match_per_query(indices, np.concatenate(distances))
     return (
-        np.concatenate(image_rows).astype(np.float64),
-        np.concatenate(world_rows).astype(np.float64),
+        query.keypoints[indices[kept]].astype(np.float64),
+        np.concatenate(world_rows)[kept].astype(np.float64),
     )
 
 
