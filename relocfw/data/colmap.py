@@ -11,7 +11,10 @@ unless the model was aligned to metric coordinates (e.g. `colmap model_aligner`)
 
 Each frame's `camera` is its COLMAP camera as a pinhole (PINHOLE, SIMPLE_PINHOLE, or a
 distortion model whose coefficients are all 0), None for a camera with lens distortion
-(`ColmapDataset.why_no_camera(name)` says why); a model has no depth maps.
+(`ColmapDataset.why_no_camera(name)` says why); a model has no depth maps. With
+`points=True` (the default) each frame also carries the model's 3-D points it observed
+(`Frame.observations`, relocfw.data.colmap_points), so refine=features solves against
+COLMAP's own tracks instead of triangulating again.
 """
 
 from __future__ import annotations
@@ -44,6 +47,7 @@ from relocfw.data.colmap_format import (
     read_images_binary,
     read_images_text,
 )
+from relocfw.data.colmap_points import read_model_observations
 from relocfw.data.frames import Frame
 from relocfw.data.on_error import OnError
 
@@ -231,6 +235,9 @@ class ColmapDataset:
         on_error: "fail" or "skip" (bad entries left out and listed).
         metric: True declares the model metric (aligned to metres, e.g. with
             `colmap model_aligner`): reports then say metres and print no note.
+        points: read the model's points3D and each image's observations of them into
+            `Frame.observations` (False: poses only; a model without points3D gives
+            none either way).
 
     Attributes:
         metric: False by default: COLMAP's scale is arbitrary, so errors are in
@@ -255,9 +262,12 @@ class ColmapDataset:
         images: str = "images",
         on_error: str = "fail",
         metric: bool = False,
+        points: bool = True,
     ) -> None:
         if not isinstance(metric, bool):
             raise ConfigError(f"dataset.metric must be true or false, got {metric!r}")
+        if not isinstance(points, bool):
+            raise ConfigError(f"dataset.points must be true or false, got {points!r}")
         # Read by relocfw.report.units.unit_of: what every report calls the positions.
         self.metric = metric
         self.units_note = "" if metric else UNITS_NOTE
@@ -286,6 +296,8 @@ class ColmapDataset:
         )
         self._camera_ids = {image.name: image.camera_id for image in registered}
         self.pinholes = {key: pinhole_of(camera) for key, camera in self.cameras.items()}
+        # Read after the poses, so a damaged images file is named by their reader.
+        self._observations = read_model_observations(self.model_file) if points else {}
         chosen = self._splits(registered, {"train": train, "test": test})
         self._frames = {
             split: self._existing_frames([i for i in registered if i.name in chosen[split]])
@@ -325,7 +337,15 @@ class ColmapDataset:
             except DataError as error:
                 self.on_error.handle(error)
                 continue
-            frames.append(Frame(image.name, path, pose, camera=self.pinholes[image.camera_id]))
+            frames.append(
+                Frame(
+                    image.name,
+                    path,
+                    pose,
+                    camera=self.pinholes[image.camera_id],
+                    observations=self._observations.get(image.name),
+                )
+            )
         return frames
 
     def frames(self, split: str) -> list[Frame]:

@@ -13,6 +13,7 @@ from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import DataError
 from relocfw.core.geometry import mean_quaternion
 from relocfw.core.imaging import read_rgb
+from relocfw.core.observations import PointObservations
 from relocfw.core.progress import Progress
 from relocfw.core.values import Pose
 from relocfw.data.on_error import OnError
@@ -37,6 +38,9 @@ class Frame:
             dataset has none. Read it with relocfw.data.depth.read_frame_depth.
         depth_units_per_metre: the depth map's scale: 1000 (millimetres) for 7-Scenes
             and the synthetic scene, 5000 for TUM RGB-D.
+        observations: the 3-D points a reconstruction saw in the image, with their
+            pixels (a COLMAP model's points3D: relocfw.data.colmap_points); None
+            where the dataset has none.
     """
 
     name: str
@@ -47,6 +51,7 @@ class Frame:
     camera: PinholeCamera | None = None
     depth_path: Path | None = None
     depth_units_per_metre: float = 1000.0
+    observations: PointObservations | None = None
 
 
 def claim_frame_name(claimed: dict[str, Path], name: str, image: Path, source: str) -> None:
