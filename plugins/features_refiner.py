@@ -2,8 +2,13 @@
 map, 2-D/3-D correspondences, absolute pose by LO-RANSAC (relocfw.structure).
 
 The structure-based family (hloc's): per map image RootSIFT keypoints with a 3-D point
-each, lifted with the map image's depth (`structure=depth`) or triangulated between
-map images with their known poses (`structure=triangulated`, for users without depth).
+each, lifted with the map image's depth (`structure=depth`), triangulated between
+map images with their known poses (`structure=triangulated`, for users without depth)
+or taken from a COLMAP model's own points3D (`structure=colmap`: each keypoint gets
+the point of the model's observation it sits on, relocfw.structure.colmap_structure).
+`structure=depth` on map images that have no depth map but carry a COLMAP model's
+observations (dataset=colmap, dataset.points=true) uses those: a model's points are
+measured 3-D, as depth is, so `refine=features` on dataset=colmap solves against them.
 Per query: retrieve `count` keyframes, by the chosen crop's descriptor (with crop=ga,
 the paper's idea applied to retrieval), by the network's pose, or by the last confident
 pose of the query's stream (`keyframes=track`, below); match, solve. With fewer than
@@ -31,8 +36,9 @@ unaligned COLMAP model), the triangulation's one length in metres, the 5 cm smal
 baseline, is measured against the map instead: half the median distance between a
 map image and its nearest other map image (the bound's job is to skip partners
 standing almost where the image stands, and in a map of unknown scale "almost" can
-only be told from how far apart its images usually are). structure=depth is refused
-there: depth maps are in metres and cannot be lifted into poses that are not.
+only be told from how far apart its images usually are). Depth maps are refused
+there (they are in metres and cannot be lifted into poses that are not); a COLMAP
+model's points are in its own units, as its poses, so they serve at any scale.
 
 Model files (format 5) keep the fitted refiner whole (`state` / `load_state`: the map's
 structure as flat arrays, relocfw.structure.map_state, the keyframe descriptors and
@@ -57,16 +63,19 @@ from relocfw.core.values import Pose
 from relocfw.structure import (
     MapView,
     StructureMap,
+    build_from_colmap_points,
     cached_structure_map,
     keyframes_by_pose,
     localize_against,
     structure_key,
 )
+from relocfw.structure.colmap_structure import checked_radius
 from relocfw.structure.features import LocalFeatures
 from relocfw.structure.map_state import map_of_state, map_state
 from relocfw.structure.refiner_inputs import (
     builder_parameters,
     has_depth_file,
+    has_observations,
     keyframes_by_descriptor,
     map_camera,
     query_camera,
@@ -83,9 +92,11 @@ from relocfw.structure.refiner_state import (
 )
 from relocfw.structure.tracking_prior import LastConfidentPoses
 
-STRUCTURES = ("depth", "triangulated")
+STRUCTURES = ("depth", "triangulated", "colmap")
 NO_DEPTH_HINT = (
-    "use refine=features_rgb, which triangulates the map's points from its images and poses"
+    "use refine=features_rgb, which triangulates the map's points from its images and "
+    "poses, or, for a COLMAP model, dataset=colmap with dataset.points=true and the "
+    "model's points3D file (refine=features_colmap)"
 )
 
 
@@ -93,8 +104,10 @@ class FeaturesRefiner(PoseRefiner):
     """Local features + PnP against the map's structure.
 
     Args:
-        structure: "depth" (3-D points from the map images' depth maps) or
-            "triangulated" (between map images with their known poses; RGB only).
+        structure: "depth" (3-D points from the map images' depth maps; a COLMAP
+            model's points where the map images have no depth but carry those),
+            "triangulated" (between map images with their known poses; RGB only)
+            or "colmap" (a COLMAP model's points3D, Frame.observations).
         keyframes: "descriptor" (the map images nearest to the chosen crop's
             descriptor), "pose" (nearest to the network's pose, looking the same way)
             or "track" (nearest to the last confident pose of the query's stream,
@@ -107,7 +120,9 @@ class FeaturesRefiner(PoseRefiner):
         cache_dir: where the map's structure is cached by content (None: not cached).
         quiet: no progress bars.
         metric: whether the map's poses are in metres (dataset.metric); False scales
-            the triangulation's metric bound to the map and refuses structure=depth.
+            the triangulation's metric bound to the map and refuses depth maps.
+        radius_px: structure=colmap: the farthest a COLMAP observation may be from
+            the keypoint that takes its 3-D point.
     """
 
     def __init__(
@@ -122,6 +137,7 @@ class FeaturesRefiner(PoseRefiner):
         cache_dir: str | Path | None = None,
         quiet: bool = False,
         metric: bool = True,
+        radius_px: float = 2.5,
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -140,12 +156,44 @@ class FeaturesRefiner(PoseRefiner):
         if not isinstance(metric, bool):
             raise ConfigError(f"refine.metric must be true or false, got {metric!r}")
         self.metric = metric
+        self.radius_px = checked_radius(radius_px)
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
-        if structure == "depth" and not metric:
+
+    def source_for(self, frames: Sequence[object]) -> str:
+        """The builder the map gets: refine.structure, except that structure=depth on
+        map images without a depth file that carry a COLMAP model's observations
+        takes the model's points ("colmap"; see the module)."""
+        if (
+            self.structure_source == "depth"
+            and not any(has_depth_file(f) for f in frames)
+            and any(has_observations(f) for f in frames)
+        ):
+            return "colmap"
+        return self.structure_source
+
+    def check_source(self, frames: Sequence[object], depth_files: bool = True) -> str:
+        """source_for(frames), or a ConfigError where the map images cannot give it
+        (`depth_files`: also when none names an existing depth file; fit leaves that
+        to the build, whose message names the first file that failed)."""
+        source = self.source_for(frames)
+        if source == "depth" and not self.metric:
             raise ConfigError(
                 "refine=features lifts depth maps (metres) into the map's poses, which "
                 f"are not metric here (dataset.metric=false); {NO_DEPTH_HINT}"
             )
+        if source == "depth" and depth_files and not any(has_depth_file(f) for f in frames):
+            raise ConfigError(
+                f"refine=features needs depth maps, and none of the {len(frames)} map "
+                f"images has one; {NO_DEPTH_HINT}"
+            )
+        if source == "colmap" and not any(has_observations(f) for f in frames):
+            raise ConfigError(
+                "refine.structure=colmap needs a COLMAP model's 3-D points, and none of "
+                f"the {len(frames)} map images carries any (dataset=colmap with "
+                "dataset.points=true and a model holding points3D); use "
+                "refine=features_rgb to triangulate them from the images and poses"
+            )
+        return source
 
     def settings(self, views: Sequence[MapImage], parameters: dict | None = None) -> dict:
         """The map structure's cache key besides names, poses and cameras
@@ -153,24 +201,26 @@ class FeaturesRefiner(PoseRefiner):
         where the caller has them already (a non-metric map's spacing is O(M^2))."""
         if parameters is None:
             parameters = self.build_parameters(views)
-        return structure_settings(self.structure_source, self.max_features, views, parameters)
+        source = self.source_for(views)
+        return structure_settings(source, self.max_features, views, parameters)
 
     def build_parameters(self, views: Sequence[MapImage]) -> dict:
-        """The builder's keyword arguments (refiner_inputs.builder_parameters)."""
-        return builder_parameters(self.structure_source, self.metric, views)
+        """The builder's keyword arguments (refiner_inputs.builder_parameters; for
+        structure=colmap, radius_px)."""
+        source = self.source_for(views)
+        if source == "colmap":
+            return {"radius_px": self.radius_px}
+        return builder_parameters(source, self.metric, views)
 
     def check_map(self, frames: Sequence[object]) -> None:
         map_camera(frames)
-        if self.structure_source == "depth" and not any(has_depth_file(f) for f in frames):
-            raise ConfigError(
-                f"refine=features needs depth maps, and none of the {len(frames)} map "
-                f"images has one; {NO_DEPTH_HINT}"
-            )
+        self.check_source(frames)
 
     def fit(self, views: Sequence[MapImage], descriptors: np.ndarray, quiet: bool = True) -> None:
         quiet = quiet or self.quiet
         self.tracked.clear()  # poses of another map's frames
         self.camera = map_camera(views)
+        source = self.check_source(views, depth_files=False)
         self.zscore = ZScore().fit(check_features(descriptors))
         self.points = self.zscore(check_features(descriptors))
         self.poses = [view.pose for view in views]
@@ -189,8 +239,13 @@ class FeaturesRefiner(PoseRefiner):
         parameters = self.build_parameters(views)
 
         def build() -> StructureMap:
-            if self.structure_source == "depth":
+            if source == "depth":
                 return StructureMap.build_from_depth(map_views, self.max_features, quiet=quiet)
+            if source == "colmap":
+                observations = [getattr(view, "observations", None) for view in views]
+                return build_from_colmap_points(
+                    map_views, observations, self.max_features, quiet=quiet, **parameters
+                )
             return StructureMap.build_by_triangulation(
                 map_views, self.max_features, quiet=quiet, **parameters
             )
@@ -205,8 +260,15 @@ class FeaturesRefiner(PoseRefiner):
                 self.settings(views, parameters),
             )
             self.structure = cached_structure_map(self.cache_dir, key, build, quiet)
-        if self.structure_source == "depth" and not self.structure.point_counts().any():
+        if source != "triangulated" and not self.structure.point_counts().any():
             # Every query would fall back: a configuration that cannot work.
+            if source == "colmap":
+                raise ConfigError(
+                    f"refine=features found no keypoint within {self.radius_px:g} px of a "
+                    f"COLMAP observation in any of the {len(views)} map images (first: "
+                    f"{self.skipped_views[0].name}: {self.skipped_views[0].reason}); are "
+                    "the images the ones the model was made from, at its resolution?"
+                )
             raise ConfigError(
                 f"refine=features found no usable depth in any of the {len(views)} map "
                 f"images (first: {self.skipped_views[0].name}: "

@@ -403,6 +403,7 @@ def map_images(
             camera=getattr(frame, "camera", None),
             depth_path=getattr(frame, "depth_path", None),
             depth_units_per_metre=getattr(frame, "depth_units_per_metre", 1000.0),
+            observations=getattr(frame, "observations", None),
         )
         for i, (image, pose, frame) in enumerate(zip(images, poses, frames, strict=True))
     ]

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from relocfw.core.camera import PinholeCamera
+from relocfw.core.observations import PointObservations
 from relocfw.core.values import Pose
 
 
@@ -44,6 +45,8 @@ class MapImage:
             None if absent.
         depth_units_per_metre: the depth map's scale (1000: millimetres, as 7-Scenes;
             TUM RGB-D: 5000).
+        observations: the 3-D points a reconstruction saw in the image (a COLMAP
+            model's, relocfw.data.frames.Frame.observations), None where none.
     """
 
     name: str
@@ -52,6 +55,7 @@ class MapImage:
     camera: PinholeCamera | None = None
     depth_path: Path | None = None
     depth_units_per_metre: float = 1000.0
+    observations: PointObservations | None = None
 
 
 @dataclass(frozen=True)

@@ -6,15 +6,17 @@ One job per module: `features` (SIFT keypoints, RootSIFT descriptors), `matching
 posed views), `absolute_pose` (P3P LO-RANSAC and refinement through PoseLib);
 `map_view` (a map image as the builders take it), `structure_map` (the map's
 features and 3-D points, built from depth or by triangulation, one npz file, a
-cache), `query_solver` (one query's pose against the map, keyframe choice). The
-pinhole camera is `relocfw.core.camera` (relocfw.data reads it from files and may
-import only the core); it is re-exported here.
+cache), `colmap_structure` (the same from a COLMAP model's own 3-D points),
+`query_solver` (one query's pose against the map, keyframe choice). The pinhole
+camera is `relocfw.core.camera` (relocfw.data reads it from files and may import
+only the core); it is re-exported here.
 
 This part may import only relocfw.core and relocfw.data (tests/core/test_layout.py).
 """
 
 from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.structure.absolute_pose import AbsolutePose, solve_absolute_pose
+from relocfw.structure.colmap_structure import build_from_colmap_points
 from relocfw.structure.features import LocalFeatures, extract_rootsift
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
@@ -41,6 +43,7 @@ __all__ = [
     "StructureAnswer",
     "StructureMap",
     "build_by_triangulation",
+    "build_from_colmap_points",
     "build_from_depth",
     "cached_structure_map",
     "extract_rootsift",

@@ -142,7 +142,8 @@ def map_of_state(state: dict[str, torch.Tensor], label: str = "map state") -> St
         )
     source = int(arrays["source"])
     if not 0 <= source < len(SOURCES):
-        raise DataError(f"{label}: source must be 0 (depth) or 1 (triangulated), got {source}")
+        known = ", ".join(f"{number} ({name})" for number, name in enumerate(SOURCES))
+        raise DataError(f"{label}: source must be one of {known}, got {source}")
     return built_map(arrays, SOURCES[source], label)
 
 

@@ -1,7 +1,8 @@
 """What refine=features reads of its map images besides the structure itself: the
-one camera queries default to, whether depth files exist, the builder's parameters,
-and the digests of pixels and depth files that the structure cache's key is made of
-(plugins/features_refiner.py, `settings`)."""
+one camera queries default to, whether depth files or a COLMAP model's observations
+exist, the builder's parameters, and the digests of pixels, depth files and
+observations that the structure cache's key is made of (plugins/features_refiner.py,
+`settings`)."""
 
 from __future__ import annotations
 
@@ -25,10 +26,11 @@ NON_METRIC_BASELINE_SHARE = 0.5
 
 def builder_parameters(structure: str, metric: bool, views: Sequence[MapImage]) -> dict:
     """The keyword arguments the builder gets besides views, max_features and quiet:
-    none for structure=depth; for triangulated, every parameter of
-    build_by_triangulation at its default (so a changed default changes the cache
-    key), with the smallest baseline scaled to a map that is not metric."""
-    if structure == "depth":
+    none for structure=depth and colmap (the refiner adds its radius_px); for
+    triangulated, every parameter of build_by_triangulation at its default (so a
+    changed default changes the cache key), with the smallest baseline scaled to a
+    map that is not metric."""
+    if structure != "triangulated":
         return {}
     parameters = {
         name: parameter.default
@@ -48,15 +50,40 @@ def structure_settings(
     cache key): the builder and every parameter it is called with, each image's
     pixels, and each depth file's scale and contents, so new or changed depth
     maps, re-rendered images or other build parameters are never answered from an
-    old cache. (relocfw.structure.structure_key adds the OpenCV and relocfw
-    versions.)"""
-    return {
+    old cache; for structure=colmap each image's observed pixels, points and track
+    ids too (a re-triangulated model). (relocfw.structure.structure_key adds the
+    OpenCV and relocfw versions.)"""
+    settings = {
         "structure": structure,
         "max_features": max_features,
         "build": parameters,
         "images": [image_digest(v.image) for v in views],
         "depth": [depth_file_state(v) for v in views],
     }
+    if structure == "colmap":
+        # Only here, so the keys of maps built from depth or by triangulation stay
+        # what they were (their caches are still found).
+        settings["observations"] = [observations_digest(v) for v in views]
+    return settings
+
+
+def observations_digest(view: MapImage) -> str | None:
+    """A short hash of a map image's COLMAP observations (pixels, points, track ids),
+    None when it has none."""
+    observations = getattr(view, "observations", None)
+    if observations is None:
+        return None
+    digest = hashlib.blake2b(digest_size=8)
+    for array in (observations.keypoints, observations.points, observations.track_ids):
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
+
+
+def has_observations(frame: object) -> bool:
+    """Whether a map image (a Frame or MapImage) carries a COLMAP model's observations
+    of at least one 3-D point."""
+    observations = getattr(frame, "observations", None)
+    return observations is not None and len(observations) > 0
 
 
 def image_digest(image: np.ndarray) -> str:

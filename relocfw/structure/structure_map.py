@@ -9,6 +9,9 @@ correspondences; this module builds what it matches against. Two builders:
 - `build_by_triangulation`: RGB only; each keypoint's point is triangulated from its
   matches in a few nearby map images whose poses are known.
 
+A third, `relocfw.structure.colmap_structure.build_from_colmap_points`, gives the
+keypoints a COLMAP model's own 3-D points (source "colmap").
+
 A map is one compressed npz file (`StructureMap.save` / `StructureMap.load`), and
 `cached_structure_map` keeps one per content key (`structure_key`) under a cache
 folder, so a map is built once.
@@ -57,7 +60,7 @@ from relocfw.structure.triangulation import checked_bound, triangulate
 # map written by older code is never picked up by code that reads it differently.
 FORMAT_VERSION = 1
 FILE_KIND = "relocfw structure map"
-SOURCES = ("depth", "triangulated")
+SOURCES = ("depth", "triangulated", "colmap")
 # RootSIFT components are in [0, 1]; uint8 steps of 1/255 (an error of at most 0.002
 # per component, against nearest-neighbour distances of 0.3 and more).
 DESCRIPTOR_SCALE = 255.0
@@ -140,8 +143,9 @@ class StructureMap:
         poses: per image, the camera-to-world Pose.
         cameras: per image, the PinholeCamera of its keypoints.
         names: per image, its name.
-        source: "depth" (lifted with depth maps) or "triangulated" (from matches
-            between map images of known pose).
+        source: "depth" (lifted with depth maps), "triangulated" (from matches
+            between map images of known pose) or "colmap" (a COLMAP model's points,
+            relocfw.structure.colmap_structure).
         skipped_views: the views that gave no 3-D point and why; their features are
             kept (a query may still match them, and the caller reports them).
 

@@ -200,6 +200,11 @@ def test_a_map_in_other_units_scales_the_smallest_baseline(synthetic_scene):
     np.testing.assert_allclose(scaled_points[both], metric_points[both] * scale, rtol=0.02)
 
 
-def test_depth_is_refused_on_a_map_that_is_not_metric():
+def test_depth_is_refused_on_a_map_that_is_not_metric(synthetic_scene):
+    # Refused once the map images are known (a COLMAP model's points would serve at
+    # any scale), and before any network is trained: check_map runs first.
+    refiner = FeaturesRefiner(structure="depth", metric=False)
     with pytest.raises(ConfigError, match="not metric.*features_rgb"):
-        FeaturesRefiner(structure="depth", metric=False)
+        refiner.check_map(map_images(synthetic_scene))
+    with pytest.raises(ConfigError, match="not metric.*features_rgb"):
+        refiner.fit(map_images(synthetic_scene), np.eye(len(synthetic_scene.views)))
