@@ -35,6 +35,21 @@ def pycolmap_module() -> ModuleType:
         ) from None
 
 
+def image_pairs(
+    names: Sequence[str], unmatched: Sequence[str], pairing: str, overlap: int
+) -> list[tuple[str, str]]:
+    """The pairs of images to match: every pair ("exhaustive") or each image with the
+    next `overlap` in name order ("sequential"), leaving out the `unmatched`."""
+    left_out = set(unmatched)
+    matched = sorted(name for name in names if name not in left_out)
+    window = len(matched) if pairing == "exhaustive" else overlap
+    return [
+        (first, second)
+        for index, first in enumerate(matched)
+        for second in matched[index + 1 : index + 1 + window]
+    ]
+
+
 def triangulate_posed_images(
     image_root: Path,
     names: Sequence[str],
@@ -45,6 +60,7 @@ def triangulate_posed_images(
     pairing: str = "exhaustive",
     overlap: int = 10,
     threads: int = 2,
+    unmatched: Sequence[str] = (),
 ) -> Path:
     """Triangulate a sparse model of `names` (relative to `image_root`) at `poses`.
 
@@ -60,6 +76,10 @@ def triangulate_posed_images(
             the next `overlap` in name order: cheaper for long recordings).
         overlap: the sequential pairing's window.
         threads: CPU threads for extraction and matching.
+        unmatched: images of `names` registered at their pose but matched with
+            none, so they add no observation and no point: queries that an
+            evaluation must not have in the map, yet needs in the model (dataset=
+            colmap reads both splits from one model).
 
     Returns:
         The model folder (workspace/sparse), binary cameras, images and points3D.
@@ -92,16 +112,17 @@ def triangulate_posed_images(
         extraction_options=extraction,
         device=pycolmap.Device.cpu,
     )
-    matching = pycolmap.FeatureMatchingOptions(num_threads=threads)
-    if pairing == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=matching, device=pycolmap.Device.cpu)
-    else:
-        pycolmap.match_sequential(
-            database,
-            matching_options=matching,
-            pairing_options=pycolmap.SequentialPairingOptions(overlap=overlap),
-            device=pycolmap.Device.cpu,
-        )
+    pairs = workspace / "pairs.txt"
+    pairs.write_text(
+        "".join(f"{a} {b}\n" for a, b in image_pairs(names, unmatched, pairing, overlap)),
+        encoding="utf-8",
+    )
+    pycolmap.match_image_pairs(
+        database,
+        matching_options=pycolmap.FeatureMatchingOptions(num_threads=threads),
+        pairing_options=pycolmap.ImportedPairingOptions(match_list_path=str(pairs)),
+        device=pycolmap.Device.cpu,
+    )
     # The database numbers images and cameras; the posed model must use its numbers.
     store = pycolmap.Database.open(str(database))
     try:
