@@ -14,8 +14,9 @@ Layouts (COLMAP's "Output Format" documentation; binary is little endian):
     images.bin    uint64 count; per image uint32 id, float64 qvec[4], float64 tvec[3],
                   uint32 camera id, NAME + NUL, uint64 n, n x (float64 x, float64 y,
                   uint64 point3D id)
-The 2-D observations and points3D are passed over: relocalization needs only where
-each image was taken. Cameras are read and checked (a known model, its parameter
+The 2-D observations and points3D are passed over here: relocalization needs only
+where each image was taken (relocfw.data.colmap_points reads them for the
+structure-based stage). Cameras are read and checked (a known model, its parameter
 count, a positive size and focal length) and kept for the structure-based stage.
 Newer COLMAP versions also write rigs and frames files; they still write each
 registered image's own world-to-camera pose in images.*, so those are not needed
