@@ -42,8 +42,9 @@ the query options), so a loaded model needs no map image, depth file or cache.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -66,6 +67,7 @@ from relocfw.structure.features import LocalFeatures
 from relocfw.structure.map_state import map_of_state, map_state
 from relocfw.structure.refiner_inputs import (
     builder_parameters,
+    checked_triangulation,
     has_depth_file,
     keyframes_by_descriptor,
     map_camera,
@@ -107,7 +109,11 @@ class FeaturesRefiner(PoseRefiner):
         cache_dir: where the map's structure is cached by content (None: not cached).
         quiet: no progress bars.
         metric: whether the map's poses are in metres (dataset.metric); False scales
-            the triangulation's metric bound to the map and refuses structure=depth.
+            the two-view triangulation's metric bound to the map and refuses
+            structure=depth (the track builder's settings are scale-free).
+        triangulation: how structure=triangulated builds its points (method tracks or
+            two_view and the track settings, relocfw.structure.tracks.TrackSettings);
+            None: the defaults. Checked here, each key named.
     """
 
     def __init__(
@@ -122,6 +128,7 @@ class FeaturesRefiner(PoseRefiner):
         cache_dir: str | Path | None = None,
         quiet: bool = False,
         metric: bool = True,
+        triangulation: Mapping[str, Any] | None = None,
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -140,6 +147,9 @@ class FeaturesRefiner(PoseRefiner):
         if not isinstance(metric, bool):
             raise ConfigError(f"refine.metric must be true or false, got {metric!r}")
         self.metric = metric
+        # Checked even for structure=depth: a typo there should not wait for the
+        # day the same config is run with features_rgb.
+        self.triangulation = checked_triangulation(triangulation)
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
         if structure == "depth" and not metric:
             raise ConfigError(
@@ -157,7 +167,7 @@ class FeaturesRefiner(PoseRefiner):
 
     def build_parameters(self, views: Sequence[MapImage]) -> dict:
         """The builder's keyword arguments (refiner_inputs.builder_parameters)."""
-        return builder_parameters(self.structure_source, self.metric, views)
+        return builder_parameters(self.structure_source, self.metric, views, self.triangulation)
 
     def check_map(self, frames: Sequence[object]) -> None:
         map_camera(frames)
