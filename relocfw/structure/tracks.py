@@ -42,7 +42,7 @@ from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.values import Pose
 from relocfw.structure.covisibility import covisible_partners, scene_depths
 from relocfw.structure.features import LocalFeatures
-from relocfw.structure.matching import mutual_nearest_neighbours
+from relocfw.structure.matching import match_against_views
 from relocfw.structure.triangulation import checked_bound, world_to_camera
 
 # Gauss-Newton steps per solve: from the DLT's start a track converges in 2-3.
@@ -67,7 +67,7 @@ class TrackSettings:
     partners: int = 6
     min_partner_angle_deg: float = 1.5
     max_partner_angle_deg: float = 20.0
-    epipolar_px: float = 2.0
+    epipolar_px: float = 4.0
     max_reprojection_px: float = 4.0
     min_views: int = 2
     min_angle_deg: float = 1.5
@@ -165,25 +165,34 @@ def pair_matches(
     Returns:
         (i, j, [K, 2] int64 (keypoint of i, keypoint of j)) per pair with i < j.
     """
-    pairs = sorted({(min(i, j), max(i, j)) for i, chosen in enumerate(partners) for j in chosen})
+    # Each unordered pair once, matched from its lower image: one matrix product per
+    # image against all its partners (relocfw.structure.matching.match_against_views).
+    higher: list[set[int]] = [set() for _ in features]
+    for i, chosen in enumerate(partners):
+        for j in chosen:
+            higher[min(i, j)].add(max(i, j))
     found = []
-    for i, j in pairs:
-        matches = mutual_nearest_neighbours(
-            features[i].descriptors, features[j].descriptors, settings.ratio
-        )
-        if len(matches) == 0:
+    for i, others in enumerate(higher):
+        order = sorted(others)
+        if not order:
             continue
-        distance = epipolar_distances(
-            features[i].keypoints[matches[:, 0]],
-            features[j].keypoints[matches[:, 1]],
-            cameras[i],
-            poses[i],
-            cameras[j],
-            poses[j],
-        )
-        kept = matches[distance <= settings.epipolar_px]
-        if len(kept):
-            found.append((i, j, kept))
+        for slot, matches in match_against_views(
+            features[i], [features[j] for j in order], settings.ratio
+        ):
+            j = order[slot]
+            if len(matches) == 0:
+                continue
+            distance = epipolar_distances(
+                features[i].keypoints[matches[:, 0]],
+                features[j].keypoints[matches[:, 1]],
+                cameras[i],
+                poses[i],
+                cameras[j],
+                poses[j],
+            )
+            kept = matches[distance <= settings.epipolar_px]
+            if len(kept):
+                found.append((i, j, kept))
     return found
 
 

@@ -109,7 +109,7 @@ def test_the_cache_key_holds_every_triangulation_parameter():
         "partners": 6,
         "min_partner_angle_deg": 1.5,
         "max_partner_angle_deg": 20.0,
-        "epipolar_px": 2.0,
+        "epipolar_px": 4.0,
         "max_reprojection_px": 4.0,
         "min_views": 2,
         "min_angle_deg": 1.5,
