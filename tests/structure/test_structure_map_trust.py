@@ -205,9 +205,7 @@ def test_a_map_in_other_units_scales_the_smallest_baseline(synthetic_scene):
         0.5 * 0.3742 * scale, rel=1e-3
     )
     refiner.fit(images, np.eye(3), quiet=True)
-    metric = fitted(
-        synthetic_scene, structure="triangulated", triangulation={"method": "two_view"}
-    )
+    metric = fitted(synthetic_scene, structure="triangulated", triangulation={"method": "two_view"})
     assert refiner.skipped_views == ()
     scaled_points = np.concatenate(refiner.structure.points)
     metric_points = np.concatenate(metric.structure.points)
