@@ -48,8 +48,9 @@ the query options), so a loaded model needs no map image, depth file or cache.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -74,6 +75,7 @@ from relocfw.structure.features import LocalFeatures
 from relocfw.structure.map_state import map_of_state, map_state
 from relocfw.structure.refiner_inputs import (
     builder_parameters,
+    checked_triangulation,
     has_depth_file,
     has_observations,
     keyframes_by_descriptor,
@@ -120,9 +122,13 @@ class FeaturesRefiner(PoseRefiner):
         cache_dir: where the map's structure is cached by content (None: not cached).
         quiet: no progress bars.
         metric: whether the map's poses are in metres (dataset.metric); False scales
-            the triangulation's metric bound to the map and refuses depth maps.
+            the two-view triangulation's metric bound to the map and refuses depth
+            maps (the track builder's settings are scale-free).
         radius_px: structure=colmap: the farthest a COLMAP observation may be from
             the keypoint that takes its 3-D point.
+        triangulation: how structure=triangulated builds its points (method tracks or
+            two_view and the track settings, relocfw.structure.tracks.TrackSettings);
+            None: the defaults. Checked here, each key named.
     """
 
     def __init__(
@@ -138,6 +144,7 @@ class FeaturesRefiner(PoseRefiner):
         quiet: bool = False,
         metric: bool = True,
         radius_px: float = 2.5,
+        triangulation: Mapping[str, Any] | None = None,
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -157,6 +164,9 @@ class FeaturesRefiner(PoseRefiner):
             raise ConfigError(f"refine.metric must be true or false, got {metric!r}")
         self.metric = metric
         self.radius_px = checked_radius(radius_px)
+        # Checked even for structure=depth: a typo there should not wait for the
+        # day the same config is run with features_rgb.
+        self.triangulation = checked_triangulation(triangulation)
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
 
     def source_for(self, frames: Sequence[object]) -> str:
@@ -210,7 +220,7 @@ class FeaturesRefiner(PoseRefiner):
         source = self.source_for(views)
         if source == "colmap":
             return {"radius_px": self.radius_px}
-        return builder_parameters(source, self.metric, views)
+        return builder_parameters(source, self.metric, views, self.triangulation)
 
     def check_map(self, frames: Sequence[object]) -> None:
         map_camera(frames)

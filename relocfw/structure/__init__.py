@@ -3,7 +3,9 @@
 One job per module: `features` (SIFT keypoints, RootSIFT descriptors), `matching`
 (mutual nearest neighbours with Lowe's ratio test, one matrix product), `lifting`
 (keypoints to world points with a depth map), `triangulation` (world points from two
-posed views), `absolute_pose` (P3P LO-RANSAC and refinement through PoseLib);
+posed views), `covisibility` and `tracks` (an RGB-only map's partners and multi-view
+tracks), `map_quality` (how many keypoints have a point, how far from depth),
+`absolute_pose` (P3P LO-RANSAC and refinement through PoseLib);
 `map_view` (a map image as the builders take it), `structure_map` (the map's
 features and 3-D points, built from depth or by triangulation, one npz file, a
 cache), `colmap_structure` (the same from a COLMAP model's own 3-D points),
@@ -25,7 +27,9 @@ from relocfw.structure.query_solver import StructureAnswer, keyframes_by_pose, l
 from relocfw.structure.structure_map import (
     SkippedView,
     StructureMap,
+    build_by_track_triangulation,
     build_by_triangulation,
+    build_by_two_view_triangulation,
     build_from_depth,
     cached_structure_map,
     structure_key,
@@ -42,8 +46,10 @@ __all__ = [
     "SkippedView",
     "StructureAnswer",
     "StructureMap",
+    "build_by_track_triangulation",
     "build_by_triangulation",
     "build_from_colmap_points",
+    "build_by_two_view_triangulation",
     "build_from_depth",
     "cached_structure_map",
     "extract_rootsift",

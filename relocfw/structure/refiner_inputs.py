@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import hashlib
 import inspect
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -17,30 +19,66 @@ from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError
 from relocfw.core.refinement import MapImage
 from relocfw.core.standardise import ZScore, check_features, k_nearest
-from relocfw.structure.structure_map import build_by_triangulation, median_camera_spacing
+from relocfw.structure.structure_map import (
+    TRIANGULATION_METHODS,
+    build_by_two_view_triangulation,
+    median_camera_spacing,
+)
+from relocfw.structure.tracks import TrackSettings
 
 # On a map that is not metric, the smallest triangulation baseline as a share of the
 # median distance between neighbouring map images (see plugins/features_refiner.py).
 NON_METRIC_BASELINE_SHARE = 0.5
 
 
-def builder_parameters(structure: str, metric: bool, views: Sequence[MapImage]) -> dict:
+def checked_triangulation(values: Mapping[str, Any] | None) -> dict[str, Any]:
+    """refine.triangulation as plain, checked values: {"method": ..., settings}.
+
+    None gives the defaults (method tracks, TrackSettings()). Every key must be
+    "method" or a TrackSettings field, each in range; a ConfigError names the first
+    that is not (refine.triangulation.<key>), before any training. With method
+    two_view the track settings are checked but not used: that builder runs at its
+    own defaults (`builder_parameters`), as the rows it is compared with did.
+    """
+    if values is None:
+        values = {}
+    if not isinstance(values, Mapping):
+        raise ConfigError(f"refine.triangulation must be a mapping of settings, got {values!r}")
+    settings = dict(values)
+    method = settings.pop("method", "tracks")
+    if method not in TRIANGULATION_METHODS:
+        choices = ", ".join(TRIANGULATION_METHODS)
+        raise ConfigError(f"refine.triangulation.method must be one of {choices}, got {method!r}")
+    checked = TrackSettings.of(settings, prefix="refine.triangulation")
+    return {"method": method, **asdict(checked)}
+
+
+def builder_parameters(
+    structure: str,
+    metric: bool,
+    views: Sequence[MapImage],
+    triangulation: Mapping[str, Any] | None = None,
+) -> dict:
     """The keyword arguments the builder gets besides views, max_features and quiet:
     none for structure=depth and colmap (the refiner adds its radius_px); for
-    triangulated, every parameter of build_by_triangulation at its default (so a
-    changed default changes the cache key), with the smallest baseline scaled to a
-    map that is not metric."""
+    triangulated with method tracks, the checked track settings (all scale-free); for
+    method two_view, every parameter of build_by_two_view_triangulation at its default
+    (so a changed default changes the cache key), with the smallest baseline scaled to
+    a map that is not metric."""
     if structure != "triangulated":
         return {}
+    settings = checked_triangulation(triangulation)
+    if settings["method"] == "tracks":
+        return settings
     parameters = {
         name: parameter.default
-        for name, parameter in inspect.signature(build_by_triangulation).parameters.items()
+        for name, parameter in inspect.signature(build_by_two_view_triangulation).parameters.items()
         if name not in ("views", "max_features", "quiet")
     }
     if not metric:
         spacing = median_camera_spacing([view.pose for view in views])
         parameters["min_baseline_m"] = NON_METRIC_BASELINE_SHARE * spacing
-    return parameters
+    return {"method": "two_view", **parameters}
 
 
 def structure_settings(

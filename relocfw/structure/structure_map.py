@@ -6,8 +6,11 @@ correspondences; this module builds what it matches against. Two builders:
 
 - `build_from_depth`: each keypoint is lifted to 3-D with the image's depth map
   (RGB-D maps such as 7-Scenes);
-- `build_by_triangulation`: RGB only; each keypoint's point is triangulated from its
-  matches in a few nearby map images whose poses are known.
+- `build_by_triangulation`: RGB only; by default each keypoint's point is its
+  multi-view track's, triangulated over every map image that sees it with the known
+  poses held fixed (`build_by_track_triangulation`, relocfw.structure.tracks); the
+  earlier two-view medians stay available (`build_by_two_view_triangulation`,
+  method "two_view") for comparisons.
 
 A third, `relocfw.structure.colmap_structure.build_from_colmap_points`, gives the
 keypoints a COLMAP model's own 3-D points (source "colmap").
@@ -28,6 +31,7 @@ and 0.13% new ones appeared: matches near the ratio bound.
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import math
 import re
@@ -54,6 +58,7 @@ from relocfw.structure.features import SIFT_DIMENSIONS, LocalFeatures, extract_r
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
 from relocfw.structure.matching import checked_ratio, match_against_views
+from relocfw.structure.tracks import TrackSettings, build_track_points
 from relocfw.structure.triangulation import checked_bound, triangulate
 
 # Bump when the file layout changes: it is part of every structure_key, so a cached
@@ -61,6 +66,7 @@ from relocfw.structure.triangulation import checked_bound, triangulate
 FORMAT_VERSION = 1
 FILE_KIND = "relocfw structure map"
 SOURCES = ("depth", "triangulated", "colmap")
+TRIANGULATION_METHODS = ("tracks", "two_view")
 # RootSIFT components are in [0, 1]; uint8 steps of 1/255 (an error of at most 0.002
 # per component, against nearest-neighbour distances of 0.3 and more).
 DESCRIPTOR_SCALE = 255.0
@@ -654,7 +660,7 @@ def median_of_candidates(candidates: np.ndarray) -> np.ndarray:
         return np.nanmedian(candidates, axis=1).astype(np.float32)
 
 
-def build_by_triangulation(
+def build_by_two_view_triangulation(
     views: Sequence[MapView],
     max_features: int = 1024,
     partners: int = 3,
@@ -666,7 +672,8 @@ def build_by_triangulation(
     ratio: float = 0.8,
     quiet: bool = False,
 ) -> StructureMap:
-    """The structure of RGB map images of known pose, by two-view triangulation.
+    """The structure of RGB map images of known pose, by two-view triangulation (the
+    builder before multi-view tracks; `build_by_triangulation(method="two_view")`).
 
     For each map image i: its partners (`triangulation_partners`: similar viewing
     direction, baseline between `min_baseline_m` and `max_partner_distance_m`, the
@@ -719,14 +726,7 @@ def build_by_triangulation(
         raise ConfigError(f"max_reprojection_px must be above 0, got {max_reprojection_px!r}")
     count = len(views)
     progress = Progress(2 * count, "map structure by triangulation", quiet=quiet)
-    features, poses, cameras, names = [], [], [], []
-    for number in range(count):
-        view = checked_view(number, views[number])
-        features.append(on_descriptor_grid(extract_rootsift(view.image, max_features)))
-        poses.append(view.pose)
-        cameras.append(view.camera)
-        names.append(view.name)
-        progress.advance(suffix="features")
+    features, poses, cameras, names = features_of_views(views, max_features, progress)
     chosen = triangulation_partners(
         poses, partners, max_partner_distance_m, min_baseline_m, max_axis_angle_deg
     )
@@ -769,6 +769,108 @@ def build_by_triangulation(
         source="triangulated",
         skipped_views=tuple(skipped),
     )
+
+
+def features_of_views(
+    views: Sequence[MapView], max_features: int, progress: Progress
+) -> tuple[list[LocalFeatures], list[Pose], list[PinholeCamera], list[str]]:
+    """Each view read once, in order: its RootSIFT features (on the stored grid),
+    pose, camera and name; one progress step per view."""
+    features, poses, cameras, names = [], [], [], []
+    for number in range(len(views)):
+        view = checked_view(number, views[number])
+        features.append(on_descriptor_grid(extract_rootsift(view.image, max_features)))
+        poses.append(view.pose)
+        cameras.append(view.camera)
+        names.append(view.name)
+        progress.advance(suffix="features")
+    return features, poses, cameras, names
+
+
+def build_by_track_triangulation(
+    views: Sequence[MapView],
+    max_features: int = 1024,
+    quiet: bool = False,
+    **settings: Any,
+) -> StructureMap:
+    """The structure of RGB map images of known pose, from multi-view tracks.
+
+    Partners chosen for geometry (covisible, a useful ray angle at the scene depth),
+    epipolar-filtered matches joined into tracks, each track triangulated over all
+    its views with outlier views dropped and the poses held fixed
+    (relocfw.structure.tracks); every keypoint of a track shares its one point.
+
+    Args:
+        views: the map images (M), each with pose and camera (depth is not read).
+        max_features: the most keypoints per image (>= 1).
+        quiet: show no progress bar.
+        **settings: TrackSettings fields (partners, min_partner_angle_deg,
+            max_partner_angle_deg, epipolar_px, max_reprojection_px, min_views,
+            min_angle_deg, ratio); the rest keep their defaults.
+
+    Returns:
+        StructureMap with source "triangulated"; `skipped_views` lists images with
+        no partner or no kept track.
+
+    Raises:
+        DataError: naming the view when an entry is not a MapView or its pose is not
+            finite.
+        ConfigError: naming the setting that is unknown or out of range.
+    """
+    checked_views(views)
+    max_features = integer_at_least("max_features", max_features, 1)
+    # Checked before the slow part, so a wrong setting fails at once.
+    checked = TrackSettings.of(settings, prefix="triangulation")
+    count = len(views)
+    progress = Progress(count + 1, "map structure by tracks", quiet=quiet)
+    features, poses, cameras, names = features_of_views(views, max_features, progress)
+    points, partners = build_track_points(features, poses, cameras, checked)
+    progress.advance(suffix="tracks")
+    progress.close()
+    skipped = []
+    for name, chosen, rows in zip(names, partners, points, strict=True):
+        if not chosen:
+            reason = "no partner view (none covisible within the partner angles)"
+            skipped.append(SkippedView(name, reason))
+        elif not np.isfinite(rows).all(axis=1).any():
+            skipped.append(SkippedView(name, f"no track kept with {len(chosen)} partner(s)"))
+    return StructureMap(
+        features=tuple(features),
+        points=tuple(points),
+        poses=tuple(poses),
+        cameras=tuple(cameras),
+        names=tuple(names),
+        source="triangulated",
+        skipped_views=tuple(skipped),
+    )
+
+
+def build_by_triangulation(
+    views: Sequence[MapView],
+    max_features: int = 1024,
+    method: str = "tracks",
+    quiet: bool = False,
+    **settings: Any,
+) -> StructureMap:
+    """The structure of RGB map images of known pose: multi-view tracks
+    (`build_by_track_triangulation`, method "tracks") or the earlier two-view
+    medians (`build_by_two_view_triangulation`, method "two_view"); `settings` go to
+    the chosen builder.
+
+    Raises:
+        ConfigError: when `method` is not one of TRIANGULATION_METHODS, or a setting
+            is not the chosen builder's (naming it).
+    """
+    if method == "tracks":
+        return build_by_track_triangulation(views, max_features, quiet=quiet, **settings)
+    if method == "two_view":
+        allowed = set(inspect.signature(build_by_two_view_triangulation).parameters)
+        for key in settings:
+            if key not in allowed or key in ("views", "max_features", "quiet"):
+                raise ConfigError(f"triangulation.{key} is not a setting of method two_view")
+        return build_by_two_view_triangulation(views, max_features, quiet=quiet, **settings)
+    choices = ", ".join(TRIANGULATION_METHODS)
+    raise ConfigError(f"triangulation.method must be one of {choices}, got {method!r}")
 
 
 def structure_key(

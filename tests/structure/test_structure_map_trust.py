@@ -105,6 +105,22 @@ def test_the_cache_key_holds_every_triangulation_parameter():
     view = MapImage("frame", np.zeros((4, 6, 3), np.uint8), pose)
     settings = FeaturesRefiner(structure="triangulated").settings([view])
     assert settings["build"] == {
+        "method": "tracks",
+        "partners": 6,
+        "min_partner_angle_deg": 1.5,
+        "max_partner_angle_deg": 20.0,
+        "epipolar_px": 4.0,
+        "max_reprojection_px": 4.0,
+        "min_views": 2,
+        "min_angle_deg": 1.5,
+        "ratio": 0.8,
+    }
+    changed = FeaturesRefiner(structure="triangulated", triangulation={"epipolar_px": 3.0})
+    assert changed.settings([view])["build"]["epipolar_px"] == 3.0
+    # The earlier two-view builder stays selectable, with its own parameters.
+    two_view = FeaturesRefiner(structure="triangulated", triangulation={"method": "two_view"})
+    assert two_view.settings([view])["build"] == {
+        "method": "two_view",
         "partners": 3,
         "max_partner_distance_m": None,
         "min_baseline_m": 0.05,
@@ -182,12 +198,14 @@ def test_a_map_in_other_units_scales_the_smallest_baseline(synthetic_scene):
     # the 0.05 m bound taken as 0.05 units, so no view would have a partner.
     scale = 0.01
     images = map_images(synthetic_scene, scale)
-    refiner = FeaturesRefiner(structure="triangulated", metric=False, quiet=True)
+    refiner = FeaturesRefiner(
+        structure="triangulated", metric=False, quiet=True, triangulation={"method": "two_view"}
+    )
     assert refiner.build_parameters(images)["min_baseline_m"] == pytest.approx(
         0.5 * 0.3742 * scale, rel=1e-3
     )
     refiner.fit(images, np.eye(3), quiet=True)
-    metric = fitted(synthetic_scene, structure="triangulated")
+    metric = fitted(synthetic_scene, structure="triangulated", triangulation={"method": "two_view"})
     assert refiner.skipped_views == ()
     scaled_points = np.concatenate(refiner.structure.points)
     metric_points = np.concatenate(metric.structure.points)
