@@ -44,6 +44,11 @@ class MapImage:
             None if absent.
         depth_units_per_metre: the depth map's scale (1000: millimetres, as 7-Scenes;
             TUM RGB-D: 5000).
+        depth_camera: the depth sensor's intrinsics where the depth map is not
+            registered to the image (7-Scenes' raw Kinect depth); None: read it pixel
+            for pixel with the image (relocfw.data.frames.Frame.depth_camera).
+        depth_to_colour: [4, 4] rigid transform from depth to colour camera
+            coordinates, with `depth_camera`; None: the identity.
     """
 
     name: str
@@ -52,6 +57,8 @@ class MapImage:
     camera: PinholeCamera | None = None
     depth_path: Path | None = None
     depth_units_per_metre: float = 1000.0
+    depth_camera: PinholeCamera | None = None
+    depth_to_colour: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
