@@ -155,9 +155,10 @@ class PinholeCamera:
 # 585 and principal point (320, 240): the DEPTH sensor's. The colour sensor is
 # another camera: the scene-coordinate pipelines on 7-Scenes (DSAC*, ACE:
 # datasets/setup_7scenes.py, after tsattler/visloc_pseudo_gt_limitations) give it
-# focal length 525 with the same principal point. Measured on the shared Red Kitchen
-# frames, points triangulated between colour images agree in range with depth at
-# 525 (ratio 0.986), not at 585 (1.117): docs/structure.md, "Colour and depth cameras".
+# focal length 525 with the same principal point. On the shared Red Kitchen frames,
+# points triangulated between colour images agree in range with registered depth at
+# 525, not at 585 (benchmarks/depth_registration.py; docs/structure.md, "Colour and
+# depth cameras").
 SEVENSCENES_COLOUR = PinholeCamera(525.0, 525.0, 320.0, 240.0, 640, 480)
 SEVENSCENES_DEPTH = PinholeCamera(585.0, 585.0, 320.0, 240.0, 640, 480)
 # The name this module gave the 585 camera before the two sensors were told apart;
