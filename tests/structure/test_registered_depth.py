@@ -222,3 +222,20 @@ def test_an_unknown_sensor_is_a_config_error_naming_the_key(raw_kinect_scene):
 def test_real_7scenes_frames_get_the_colour_and_depth_cameras(stairs_sample):
     frames = SevenScenes(str(stairs_sample), "stairs").frames("test")
     assert {(f.camera, f.depth_camera) for f in frames} == {(SEVENSCENES_COLOUR, SEVENSCENES_DEPTH)}
+
+
+def test_intrinsics_for_leaves_the_trained_models_key_alone():
+    # The network never sees a camera: a checkpoint trained under either sensor's
+    # reading of camera-intrinsics.txt is the same model.
+    from omegaconf import OmegaConf
+
+    from relocfw.app.methods import dataset_settings
+
+    def settings(sensor: str) -> dict:
+        dataset = {"_target_": "relocfw.data.sevenscenes.SevenScenes", "root": "r"}
+        return dataset_settings(
+            OmegaConf.create({"dataset": {**dataset, "intrinsics_for": sensor}})
+        )
+
+    assert settings("depth") == settings("colour")
+    assert "intrinsics_for" not in settings("depth") and settings("depth")["root"] == "r"
