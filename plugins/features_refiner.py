@@ -242,6 +242,8 @@ class FeaturesRefiner(PoseRefiner):
                 depth_path=view.depth_path,
                 name=view.name,
                 depth_units_per_metre=view.depth_units_per_metre,
+                depth_camera=view.depth_camera,
+                depth_to_colour=view.depth_to_colour,
             )
             for view in views
         ]
@@ -268,6 +270,7 @@ class FeaturesRefiner(PoseRefiner):
                 self.poses,
                 [v.camera for v in views],
                 self.settings(views, parameters),
+                [(v.depth_camera, v.depth_to_colour) for v in views],
             )
             self.structure = cached_structure_map(self.cache_dir, key, build, quiet)
         if source != "triangulated" and not self.structure.point_counts().any():

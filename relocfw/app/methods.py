@@ -242,7 +242,8 @@ def check_pretrained(cfg: DictConfig, choices: Mapping[str, str], backbone: Back
 def dataset_settings(cfg: DictConfig) -> dict[str, Any]:
     """What identifies the data: the dataset options without where caches live."""
     values = OmegaConf.to_container(cfg.dataset, resolve=True)
-    # metric only names the unit of the reports, and depth_units_per_metre only how the
-    # structure stage reads depth: the same images and poses train the same model.
-    left_out = ("cache_dir", "quiet", "metric", "depth_units_per_metre")
+    # metric only names the unit of the reports, and depth_units_per_metre and
+    # intrinsics_for only how the structure stage reads depth and cameras (the network
+    # never sees a camera): the same images and poses train the same model.
+    left_out = ("cache_dir", "quiet", "metric", "depth_units_per_metre", "intrinsics_for")
     return {k: v for k, v in values.items() if k not in left_out}

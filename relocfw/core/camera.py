@@ -150,6 +150,17 @@ class PinholeCamera:
         return pixels
 
 
-# Microsoft 7-Scenes' colour camera as its camera-intrinsics.txt gives it (the
-# nominal Kinect v1 calibration, 640 x 480).
-SEVENSCENES_DEFAULT = PinholeCamera(585.0, 585.0, 320.0, 240.0, 640, 480)
+# Microsoft 7-Scenes' two Kinect v1 sensors, 640 x 480 each. The dataset's page and
+# the camera-intrinsics.txt that its copies ship give one calibration, focal length
+# 585 and principal point (320, 240): the DEPTH sensor's. The colour sensor is
+# another camera: the scene-coordinate pipelines on 7-Scenes (DSAC*, ACE:
+# datasets/setup_7scenes.py, after tsattler/visloc_pseudo_gt_limitations) give it
+# focal length 525 with the same principal point. On the shared Red Kitchen frames,
+# points triangulated between colour images agree in range with registered depth at
+# 525, not at 585 (benchmarks/depth_registration.py; docs/structure.md, "Colour and
+# depth cameras").
+SEVENSCENES_COLOUR = PinholeCamera(525.0, 525.0, 320.0, 240.0, 640, 480)
+SEVENSCENES_DEPTH = PinholeCamera(585.0, 585.0, 320.0, 240.0, 640, 480)
+# The name this module gave the 585 camera before the two sensors were told apart;
+# kept for code that imports it, with the value it always had (the depth camera's).
+SEVENSCENES_DEFAULT = SEVENSCENES_DEPTH

@@ -232,8 +232,9 @@ class Relocalizer:
 
         Args:
             frames: per image, what the refiner may use of it: objects with `name`,
-                `camera`, `depth_path` and `depth_units_per_metre`, such as the
-                dataset's relocfw.data.frames.Frame (a missing attribute: unknown).
+                `camera`, `depth_path`, `depth_units_per_metre`, `depth_camera` and
+                `depth_to_colour`, such as the dataset's relocfw.data.frames.Frame (a
+                missing attribute: unknown).
 
         Returns:
             The [N, D] training descriptors.
@@ -404,6 +405,8 @@ def map_images(
             depth_path=getattr(frame, "depth_path", None),
             depth_units_per_metre=getattr(frame, "depth_units_per_metre", 1000.0),
             observations=getattr(frame, "observations", None),
+            depth_camera=getattr(frame, "depth_camera", None),
+            depth_to_colour=getattr(frame, "depth_to_colour", None),
         )
         for i, (image, pose, frame) in enumerate(zip(images, poses, frames, strict=True))
     ]

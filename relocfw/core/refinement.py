@@ -47,6 +47,11 @@ class MapImage:
             TUM RGB-D: 5000).
         observations: the 3-D points a reconstruction saw in the image (a COLMAP
             model's, relocfw.data.frames.Frame.observations), None where none.
+        depth_camera: the depth sensor's intrinsics where the depth map is not
+            registered to the image (7-Scenes' raw Kinect depth); None: read it pixel
+            for pixel with the image (relocfw.data.frames.Frame.depth_camera).
+        depth_to_colour: [4, 4] rigid transform from depth to colour camera
+            coordinates, with `depth_camera`; None: the identity.
     """
 
     name: str
@@ -56,6 +61,8 @@ class MapImage:
     depth_path: Path | None = None
     depth_units_per_metre: float = 1000.0
     observations: PointObservations | None = None
+    depth_camera: PinholeCamera | None = None
+    depth_to_colour: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

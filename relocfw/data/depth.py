@@ -144,9 +144,10 @@ def positive_scale(units_per_metre: object) -> float:
 def read_frame_depth(frame: Frame) -> np.ndarray | None:
     """The depth map of a dataset frame in metres, or None when the frame has none.
 
-    The map must have the size of the frame's camera (the colour image's full
-    resolution) when the frame has a camera: a depth map of another size is not
-    registered to the image, and lifting keypoints with it would be silently wrong.
+    The map must have the size of the frame's depth camera where it has one (the
+    depth is then not registered to the image: relocfw.structure.registration), else
+    of its camera (the colour image's full resolution): a depth map of another size
+    is not the one described, and lifting keypoints with it would be silently wrong.
 
     Args:
         frame: a Frame; its `depth_path` and `depth_units_per_metre` are used.
@@ -157,11 +158,12 @@ def read_frame_depth(frame: Frame) -> np.ndarray | None:
 
     Raises:
         DataError: naming the depth file when it is missing, not a 16-bit
-            single-channel image, or not the camera's size.
+            single-channel image, or not the (depth) camera's size.
     """
     if frame.depth_path is None:
         return None
-    size = None if frame.camera is None else (frame.camera.width, frame.camera.height)
+    camera = frame.depth_camera or frame.camera
+    size = None if camera is None else (camera.width, camera.height)
     return read_depth(frame.depth_path, size, frame.depth_units_per_metre)
 
 

@@ -31,16 +31,22 @@ class Frame:
         camera: the pinhole intrinsics of the image at its full resolution (OpenCV's
             convention, relocfw.core.camera), or None where the dataset gives none or
             its camera has lens distortion (see relocfw.data.colmap_cameras.pinhole_of).
-        depth_path: a depth map of the frame, read pixel for pixel with the colour
-            image (exactly registered for the synthetic scene, roughly for 7-Scenes): a
-            single-channel 16-bit PNG of z along the optical axis in
-            `depth_units_per_metre` units per metre, 0 = no reading; None where the
-            dataset has none. Read it with relocfw.data.depth.read_frame_depth.
+        depth_path: a depth map of the frame: a single-channel 16-bit PNG of z along
+            the optical axis of the depth sensor in `depth_units_per_metre` units per
+            metre, 0 = no reading; None where the dataset has none. Read it with
+            relocfw.data.depth.read_frame_depth.
         depth_units_per_metre: the depth map's scale: 1000 (millimetres) for 7-Scenes
             and the synthetic scene, 5000 for TUM RGB-D.
         observations: the 3-D points a reconstruction saw in the image, with their
             pixels (a COLMAP model's points3D: relocfw.data.colmap_points); None
             where the dataset has none.
+        depth_camera: the depth sensor's intrinsics at the depth map's resolution, or
+            None: the depth map is registered to the colour image and is read pixel
+            for pixel with it (the synthetic scene, TUM RGB-D). 7-Scenes' raw Kinect
+            depth has its own camera (relocfw.data.sevenscenes).
+        depth_to_colour: [4, 4] rigid transform from depth-camera coordinates to
+            colour-camera coordinates (relocfw.core.rigid.checked_rigid), used with
+            `depth_camera`; None: the identity.
     """
 
     name: str
@@ -52,6 +58,8 @@ class Frame:
     depth_path: Path | None = None
     depth_units_per_metre: float = 1000.0
     observations: PointObservations | None = None
+    depth_camera: PinholeCamera | None = None
+    depth_to_colour: np.ndarray | None = None
 
 
 def claim_frame_name(claimed: dict[str, Path], name: str, image: Path, source: str) -> None:

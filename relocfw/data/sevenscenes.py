@@ -1,27 +1,42 @@
 """Microsoft 7-Scenes layout: seq-XX/frame-NNNNNN.color.{png,jpg} + .pose.txt.
 
-Each frame also gets its camera and, where the folder has it, its depth map:
-    camera      K of `camera-intrinsics.txt` in the scene folder, else in the dataset
-                root (the folder above it, where 7-Scenes' archives put it), sized like
-                the first image of the split; without either file, 7-Scenes' nominal
-                Kinect camera (585, 585, 320, 240 for 640 x 480), without reading an
-                image (so a copy scaled to another size needs its own file), with one
-                note on stderr naming the folder and the values.
+Each frame also gets its cameras and, where the folder has it, its depth map:
+    camera      the colour camera. A Kinect v1 has two sensors: 7-Scenes' one published
+                calibration, focal length 585 and principal point (320, 240), which
+                `camera-intrinsics.txt` holds in the dataset's copies, is the DEPTH
+                sensor's; the colour sensor is the 525 camera (relocfw.core.camera
+                .SEVENSCENES_COLOUR). `intrinsics_for` names which sensor the file
+                describes (default "depth"); the other sensor gets its nominal camera
+                scaled to the colour images' size. The file is the scene folder's,
+                else the dataset root's (the folder above it, where 7-Scenes' archives
+                put it), sized like the first image of the split. Without a file: the
+                nominal cameras for 640 x 480, without reading an image (so a copy
+                scaled to another size needs its own file), with one note on stderr.
     depth_path  `frame-NNNNNN.depth.png` beside the colour image when it exists (16-bit,
                 millimetres; copies without depth load as before, with None).
+    depth_camera, depth_to_colour
+                the depth sensor's camera and the Kinect's depth-to-colour transform
+                (SEVENSCENES_DEPTH_TO_COLOUR): 7-Scenes' depth maps are the raw
+                sensor's, not registered to the colour images, so lifting registers
+                them first (relocfw.structure.registration). A scene folder (or the
+                dataset root) holding `depth-registered.txt` declares its depth maps
+                registered already (relocfw's synthetic scene writes one): the file
+                is then the colour camera's and the frames get no depth camera.
 """
 
 from __future__ import annotations
 
 import re
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
+from relocfw.core.camera import SEVENSCENES_COLOUR, SEVENSCENES_DEPTH, PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import pose_from_matrix
+from relocfw.core.rigid import checked_rigid
 from relocfw.core.values import Pose
 from relocfw.data.depth import depth_path_of
 from relocfw.data.frames import Frame
@@ -30,6 +45,26 @@ from relocfw.data.on_error import OnError
 
 SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
 SEQUENCE_LINE = re.compile(r"^sequence(\d+)$", re.IGNORECASE)
+# Which sensor camera-intrinsics.txt describes (dataset.intrinsics_for).
+SENSORS = ("depth", "colour")
+# A file whose presence in a scene folder (or the dataset root) says that its depth
+# maps are registered to the colour images, pixel for pixel.
+REGISTERED_MARKER = "depth-registered.txt"
+
+# The Kinect's depth-to-colour transform, x_colour = R x_depth + t (metres): the
+# calibration that DSAC* and ACE use on 7-Scenes (vislearn/dsacstar and nianticlabs/ace,
+# datasets/setup_7scenes.py, `d_to_rgb`, taken from tsattler/visloc_pseudo_gt_limitations;
+# they cite https://projet.liris.cnrs.fr/voir/activities-dataset/kinect-calibration.html):
+# the colour sensor 2.56 cm along -x of the depth sensor, rotated by about 0.65 degrees.
+SEVENSCENES_DEPTH_TO_COLOUR = checked_rigid(
+    [
+        [0.99996518012567637, 0.0026765126468950343, -0.0079041012313000904, -0.025558943178152542],
+        [-0.00274093112813167, 0.99996302803027592, -0.0081504520778013286, 0.00010109636268061706],
+        [0.0078819942130445332, 0.0081718328771890631, 0.99993554558014031, 0.0020318321729487039],
+        [0.0, 0.0, 0.0, 1.0],
+    ],
+    "7-Scenes' Kinect depth-to-colour calibration",
+)
 
 
 def scene_folder(root: str | Path, scene: str | None) -> Path:
@@ -104,22 +139,70 @@ def intrinsics_file(folder: Path) -> Path | None:
     return None
 
 
-def scene_camera(folder: Path, images: Sequence[Path]) -> PinholeCamera:
-    """The camera of a scene's images: its intrinsics file's, else 7-Scenes' default.
+@dataclass(frozen=True)
+class SceneCameras:
+    """A scene's cameras: the colour images', and the depth maps' where they are not
+    registered to the colour images (None where they are)."""
+
+    colour: PinholeCamera
+    depth: PinholeCamera | None
+    depth_to_colour: np.ndarray | None
+
+
+def checked_sensor(intrinsics_for: object) -> str:
+    """`intrinsics_for` when it names a sensor, else a ConfigError naming the key."""
+    if intrinsics_for not in SENSORS:
+        raise ConfigError(
+            f"dataset.intrinsics_for must be one of {', '.join(SENSORS)} (the sensor "
+            f"camera-intrinsics.txt describes), got {intrinsics_for!r}"
+        )
+    return str(intrinsics_for)
+
+
+def depth_registered(folder: Path) -> bool:
+    """Whether the scene folder or the dataset root declares registered depth."""
+    return any((place / REGISTERED_MARKER).is_file() for place in (folder, folder.parent))
+
+
+def scene_cameras(
+    folder: Path, images: Sequence[Path], intrinsics_for: str = "depth"
+) -> SceneCameras:
+    """The cameras of a scene's images and depth maps.
 
     Args:
         folder: the scene folder.
         images: the colour images of the split, in order (the first that decodes
             gives the size a file's matrix belongs to).
+        intrinsics_for: the sensor camera-intrinsics.txt describes, "depth" (as 7-Scenes'
+            copies ship it) or "colour"; the other sensor gets its nominal camera
+            scaled to the same size. Not used where the depth is registered.
 
     Raises:
         DataError: naming the intrinsics file when it is malformed.
+        ConfigError: naming dataset.intrinsics_for when it is not a sensor.
     """
+    intrinsics_for = checked_sensor(intrinsics_for)
+    registered = depth_registered(folder)
     path = intrinsics_file(folder)
     if path is None:
-        note_default_camera(folder, SEVENSCENES_DEFAULT, "7-Scenes' nominal Kinect intrinsics")
-        return SEVENSCENES_DEFAULT
-    return read_camera_for_images(path, images)
+        what = "7-Scenes' nominal Kinect colour intrinsics"
+        if not registered:
+            what += " (depth: fx=fy=585)"
+        note_default_camera(folder, SEVENSCENES_COLOUR, what)
+        if registered:
+            return SceneCameras(SEVENSCENES_COLOUR, None, None)
+        return SceneCameras(SEVENSCENES_COLOUR, SEVENSCENES_DEPTH, SEVENSCENES_DEPTH_TO_COLOUR)
+    from_file = read_camera_for_images(path, images)
+    if registered:
+        return SceneCameras(from_file, None, None)
+    # Both sensors are taken to give images of the colour images' size (640 x 480 in
+    # 7-Scenes); a copy resized to another size scales the nominal camera with it.
+    size = (from_file.width, from_file.height)
+    if intrinsics_for == "depth":
+        return SceneCameras(
+            SEVENSCENES_COLOUR.scaled_to(*size), from_file, SEVENSCENES_DEPTH_TO_COLOUR
+        )
+    return SceneCameras(from_file, SEVENSCENES_DEPTH.scaled_to(*size), SEVENSCENES_DEPTH_TO_COLOUR)
 
 
 def existing_depth(image: Path) -> Path | None:
@@ -149,8 +232,9 @@ def load_sevenscenes(
     split: str,
     on_error: OnError | None = None,
     sequences: Sequence[int] | None = None,
+    intrinsics_for: str = "depth",
 ) -> list[Frame]:
-    """Frames of one split, in sequence then frame order, with camera and depth path.
+    """Frames of one split, in sequence then frame order, with cameras and depth path.
 
     Args:
         root: dataset folder (the one holding scene folders), or a scene folder.
@@ -159,12 +243,16 @@ def load_sevenscenes(
         on_error: what to do with a bad pose file (default: fail).
         sequences: sequence numbers to use instead of the split file's, e.g. to hold
             out a validation block of the training sequences.
+        intrinsics_for: the sensor camera-intrinsics.txt describes, "depth" or
+            "colour" (scene_cameras).
 
     Raises:
         DataError: a missing split file, sequence folder or image set, a bad pose file
             (under on_error=fail), or a malformed camera-intrinsics.txt (always: it
             concerns every frame), each naming the file.
+        ConfigError: naming dataset.intrinsics_for when it is not depth or colour.
     """
+    intrinsics_for = checked_sensor(intrinsics_for)
     on_error = on_error or OnError()
     if split not in SPLIT_FILES:
         raise ConfigError(f"split must be 'train' or 'test', got {split!r}")
@@ -187,12 +275,24 @@ def load_sevenscenes(
             posed.append((f"{seq_dir.name}/{stem}", image, pose))
     if not posed:  # every pose skipped: nothing to give a camera to
         return []
-    # One camera for the scene: 7-Scenes' frames all come from one Kinect.
-    camera = scene_camera(folder, [image for _, image, _ in posed])
-    return [
-        Frame(name, image, pose, camera=camera, depth_path=existing_depth(image))
-        for name, image, pose in posed
-    ]
+    # One pair of cameras for the scene: 7-Scenes' frames all come from one Kinect.
+    cameras = scene_cameras(folder, [image for _, image, _ in posed], intrinsics_for)
+    frames = []
+    for name, image, pose in posed:
+        # The depth sensor's camera is the Kinect's whether or not this copy has
+        # the frame's depth map.
+        frames.append(
+            Frame(
+                name,
+                image,
+                pose,
+                camera=cameras.colour,
+                depth_path=existing_depth(image),
+                depth_camera=cameras.depth,
+                depth_to_colour=cameras.depth_to_colour,
+            )
+        )
+    return frames
 
 
 class SevenScenes:
@@ -204,6 +304,8 @@ class SevenScenes:
         on_error: "fail" or "skip" (bad files left out and listed).
         train_sequences: sequence numbers that replace TrainSplit.txt (None: the file).
         test_sequences: sequence numbers that replace TestSplit.txt (None: the file).
+        intrinsics_for: the sensor camera-intrinsics.txt describes: "depth" (7-Scenes'
+            own calibration, as its copies ship it) or "colour".
     """
 
     def __init__(
@@ -213,7 +315,9 @@ class SevenScenes:
         on_error: str = "fail",
         train_sequences: Sequence[int] | None = None,
         test_sequences: Sequence[int] | None = None,
+        intrinsics_for: str = "depth",
     ) -> None:
+        self.intrinsics_for = checked_sensor(intrinsics_for)
         self.folder = scene_folder(root, scene)
         self.on_error = OnError(on_error)
         self.sequences = {
@@ -232,7 +336,9 @@ class SevenScenes:
                 )
 
     def frames(self, split: str) -> list[Frame]:
-        return load_sevenscenes(self.folder, None, split, self.on_error, self.sequences.get(split))
+        return load_sevenscenes(
+            self.folder, None, split, self.on_error, self.sequences.get(split), self.intrinsics_for
+        )
 
     def split_source(self, split: str) -> str:
         """What lists the split's frames, for messages: the option or the split file."""

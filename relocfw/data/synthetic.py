@@ -29,13 +29,15 @@ from relocfw.data.depth import write_depth
 from relocfw.data.frames import Frame
 from relocfw.data.intrinsics import INTRINSICS_FILE, write_intrinsics_matrix
 from relocfw.data.room import Room, RoomRenderer
-from relocfw.data.sevenscenes import load_sevenscenes
+from relocfw.data.sevenscenes import REGISTERED_MARKER, load_sevenscenes
 
 RENDERER_VERSION = 1  # bump when rendering changes, so cached scenes are not reused
 # Bump when a scene folder gains or changes files, so a cache without them is not
 # reused. 2: depth maps and camera-intrinsics.txt (layout 1, no version in the key,
 # had colour and poses only; its colour images and poses are the same as layout 2's).
-LAYOUT_VERSION = 2
+# 3: depth-registered.txt, without which the 7-Scenes loader would take the depth
+# maps for raw Kinect depth and register them (relocfw.data.sevenscenes).
+LAYOUT_VERSION = 3
 
 
 @dataclass(frozen=True)
@@ -159,6 +161,11 @@ def ensure_synthetic_scene(spec: SyntheticSceneSpec, cache_dir: Path, quiet: boo
         (staging / "TrainSplit.txt").write_text("\n".join(train_names) + "\n")
         (staging / "TestSplit.txt").write_text(f"sequence{len(laps)}\n")
         write_intrinsics_matrix(staging / INTRINSICS_FILE, renderer.camera(spec.width, spec.height))
+        # Depth and colour are cast from the same rays: the loader reads the depth maps
+        # pixel for pixel and the intrinsics as the colour camera's.
+        (staging / REGISTERED_MARKER).write_text(
+            "The depth maps of this scene are registered to its colour images.\n"
+        )
         # scene.json last: its presence marks a complete scene.
         versions = {"renderer": RENDERER_VERSION, "layout": LAYOUT_VERSION}
         (staging / "scene.json").write_text(

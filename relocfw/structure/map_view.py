@@ -11,6 +11,7 @@ import numpy as np
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import DataError
 from relocfw.core.imaging import check_rgb_image
+from relocfw.core.rigid import checked_rigid
 from relocfw.core.values import Pose
 
 
@@ -31,6 +32,13 @@ class MapView:
         depth_units_per_metre: what one metre is stored as in the depth PNG: 1000
             (millimetres: 7-Scenes, the synthetic scene), 5000 (TUM RGB-D), as
             relocfw.data.frames.Frame.depth_units_per_metre.
+        depth_camera: the depth sensor's intrinsics at the depth map's resolution, or
+            None: the depth map is registered to the image and read pixel for pixel
+            (the map's aspect ratio must then be the image's). With a depth camera,
+            the builders register the depth into the image's pixels first
+            (relocfw.structure.registration.register_depth).
+        depth_to_colour: [4, 4] rigid transform from depth to colour camera
+            coordinates, used with `depth_camera`; None: the identity.
 
     The image is not copied (a map holds hundreds; copying each would double the
     memory); do not change it while the view is in use. Equality is identity
@@ -39,7 +47,8 @@ class MapView:
     Raises:
         DataError: naming the view when the image is not [H, W, 3] uint8 or its size
             is not the camera's, `pose` is not a Pose, `camera` not a PinholeCamera,
-            `name` not a string or `depth_units_per_metre` not a positive number.
+            `name` not a string, `depth_units_per_metre` not a positive number,
+            `depth_camera` not a PinholeCamera or `depth_to_colour` not rigid.
     """
 
     image: np.ndarray
@@ -48,6 +57,8 @@ class MapView:
     depth_path: Path | None = None
     name: str = ""
     depth_units_per_metre: float = 1000.0
+    depth_camera: PinholeCamera | None = None
+    depth_to_colour: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str):
@@ -81,6 +92,14 @@ class MapView:
                 f"millimetres), got {units!r}"
             )
         object.__setattr__(self, "depth_units_per_metre", float(units))
+        if self.depth_camera is not None and not isinstance(self.depth_camera, PinholeCamera):
+            raise DataError(
+                f"{label}: depth_camera must be a PinholeCamera or None, got "
+                f"{type(self.depth_camera).__name__}"
+            )
+        if self.depth_to_colour is not None:
+            rigid = checked_rigid(self.depth_to_colour, f"{label}: depth_to_colour")
+            object.__setattr__(self, "depth_to_colour", rigid)
 
     def __repr__(self) -> str:
         # The pixels' shape, not the pixels (the default would print the whole image).

@@ -58,6 +58,7 @@ from relocfw.structure.features import SIFT_DIMENSIONS, LocalFeatures, extract_r
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
 from relocfw.structure.matching import checked_ratio, match_against_views
+from relocfw.structure.registration import register_depth
 from relocfw.structure.tracks import TrackSettings, build_track_points
 from relocfw.structure.triangulation import checked_bound, triangulate
 
@@ -467,13 +468,18 @@ def checked_view(number: int, view: object) -> MapView:
 
 
 def depth_of_view(view: MapView) -> tuple[np.ndarray | None, str]:
-    """The view's depth map in metres, or (None, why not).
+    """The view's depth map in metres, in its image's pixels, or (None, why not).
+
+    A view with a depth camera has its depth registered into the image first
+    (relocfw.structure.registration.register_depth), so each keypoint reads the depth
+    of its own surface point; without one, the map is read as registered already.
 
     Missing, unreadable and corrupt files are a reason to skip the view (one bad
     frame of a recording should not stop a map of thousands); a depth map whose
-    aspect ratio differs from the image's, or whose median depth is implausible in
-    metres (relocfw.data.depth.check_depth_range: a wrong depth_units_per_metre), is
-    a DataError, since every view of the map would be lifted wrongly.
+    size is not its depth camera's, or (without a depth camera) whose aspect ratio
+    differs from the image's, or whose median depth is implausible in metres
+    (relocfw.data.depth.check_depth_range: a wrong depth_units_per_metre), is a
+    DataError, since every view of the map would be lifted wrongly.
     """
     if view.depth_path is None:
         return None, "no depth map (depth_path is None)"
@@ -484,6 +490,14 @@ def depth_of_view(view: MapView) -> tuple[np.ndarray | None, str]:
     # Raised, not skipped: a wrong scale is the dataset's, and every view has it.
     check_depth_range(depth, view.depth_path, view.depth_units_per_metre)
     depth_height, depth_width = depth.shape
+    if view.depth_camera is not None:
+        sensor = view.depth_camera
+        if (depth_width, depth_height) != (sensor.width, sensor.height):
+            raise DataError(
+                f"{view.depth_path}: depth map is {depth_width}x{depth_height} but the depth "
+                f"camera of {view.name!r} is {sensor.width}x{sensor.height}"
+            )
+        return register_depth(depth, sensor, view.camera, view.depth_to_colour), ""
     # The depth map's height if it were scaled to the image's width.
     scaled_height = depth_height * view.camera.width / depth_width
     if abs(scaled_height - view.camera.height) > ASPECT_TOLERANCE_PX:
@@ -503,8 +517,10 @@ def build_from_depth(
 
     Each view's depth map (relocfw.data.depth.read_depth, in the view's
     depth_units_per_metre) gives each keypoint the depth of its nearest depth pixel
-    (relocfw.structure.lifting.lift_keypoints); a depth map of another resolution
-    than the image is scaled to it when the aspect ratios agree.
+    (relocfw.structure.lifting.lift_keypoints). A view with a depth camera has its
+    depth registered into the image's pixels first (depth_of_view); without one, a
+    depth map of another resolution than the image is scaled to it when the aspect
+    ratios agree.
 
     Policy for views without usable depth: the view is kept with its features and
     all-NaN points (queries may still match it; those matches give no
@@ -878,11 +894,14 @@ def structure_key(
     poses: Sequence[Pose],
     cameras: Sequence[PinholeCamera],
     settings: dict[str, Any],
+    depth_sensors: Sequence[tuple[PinholeCamera | None, np.ndarray | None]] | None = None,
 ) -> str:
     """A content key of a structure map: what makes it, hashed.
 
-    The names, every pose and camera value (exact floats) and the builder's
-    settings (which builder and every parameter of its build) go into one sha256,
+    The names, every pose and camera value (exact floats), each view's depth camera
+    and depth-to-colour transform where it has one (depth registered with them lifts
+    to other points than depth read pixel for pixel), and the builder's settings
+    (which builder and every parameter of its build) go into one sha256,
     with FORMAT_VERSION and the versions of OpenCV (its SIFT makes the features) and
     relocfw (its builders make the points). The image pixels and depth files are not
     read here: the caller puts their digests in `settings` (FeaturesRefiner does).
@@ -892,12 +911,15 @@ def structure_key(
         poses: their M camera-to-world poses.
         cameras: their M cameras.
         settings: JSON-able settings (values that are not JSON become str).
+        depth_sensors: per view, its (depth_camera, depth_to_colour) as MapView holds
+            them, or None where no view has a depth camera (the key is then what it
+            was before views had one, so maps of registered depth stay cached).
 
     Returns:
         16 hex digits.
 
     Raises:
-        DataError: when the three sequences differ in length.
+        DataError: when the sequences differ in length.
         ConfigError: when `settings` is not a dict.
     """
     if not isinstance(settings, dict):
@@ -915,11 +937,31 @@ def structure_key(
         "poses": [[*p.position.tolist(), *p.quaternion.tolist()] for p in poses],
         "cameras": [[c.fx, c.fy, c.cx, c.cy, c.width, c.height] for c in cameras],
         "settings": settings,
+        **depth_sensor_entry(names, depth_sensors),
         "opencv": cv2.__version__,
         "relocfw": VERSION,
     }
     text = json.dumps(payload, sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def depth_sensor_entry(
+    names: Sequence[str],
+    depth_sensors: Sequence[tuple[PinholeCamera | None, np.ndarray | None]] | None,
+) -> dict[str, list]:
+    """structure_key's part for depth cameras: {} where no view has one, else
+    {"depth_sensors": per view [camera values or None, 16 transform values or None]}."""
+    if depth_sensors is None or all(camera is None for camera, _ in depth_sensors):
+        return {}
+    if len(depth_sensors) != len(names):
+        raise DataError(f"{len(names)} names but {len(depth_sensors)} depth sensors")
+    entries = []
+    for camera, transform in depth_sensors:
+        values = None if camera is None else [camera.fx, camera.fy, camera.cx, camera.cy]
+        sizes = None if camera is None else [camera.width, camera.height]
+        matrix = None if transform is None else np.asarray(transform, np.float64).ravel().tolist()
+        entries.append([values, sizes, matrix])
+    return {"depth_sensors": entries}
 
 
 def cached_structure_map(

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from hydra import compose, initialize_config_module
 
-from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
+from relocfw.core.camera import SEVENSCENES_COLOUR, PinholeCamera
 from relocfw.core.errors import ConfigError
 from relocfw.data.depth import read_frame_depth
 from relocfw.data.folder import PoseFolder
@@ -71,10 +71,12 @@ def test_sevenscenes_without_intrinsics_notes_its_default(tiny_scene, tmp_path, 
     shutil.copytree(tiny_scene, scene)
     (scene / "camera-intrinsics.txt").unlink()
     frames = load_sevenscenes(scene, None, "test")
-    assert {f.camera for f in frames} == {SEVENSCENES_DEFAULT}
+    # 7-Scenes' nominal colour camera (the synthetic scene's depth is registered, so
+    # no depth camera is named).
+    assert {f.camera for f in frames} == {SEVENSCENES_COLOUR}
     err = capsys.readouterr().err
     assert err.startswith(f"note: {scene}: no camera-intrinsics.txt")
-    assert "fx=585 fy=585 cx=320 cy=240" in err
+    assert "fx=525 fy=525 cx=320 cy=240" in err
 
 
 def test_depth_units_per_metre_scales_the_same_png(tum_root):

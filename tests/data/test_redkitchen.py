@@ -8,7 +8,7 @@ import pytest
 from relocfw.core.camera import PinholeCamera
 from relocfw.data.depth import read_frame_depth
 from relocfw.data.frames import read_images
-from relocfw.data.sevenscenes import SevenScenes
+from relocfw.data.sevenscenes import SEVENSCENES_DEPTH_TO_COLOUR, SevenScenes
 
 REDKITCHEN = Path(__file__).resolve().parents[3] / "shared" / "data" / "7scenes-redkitchen"
 
@@ -52,7 +52,11 @@ def test_near_and_far_splits_are_one_option_each(
 def test_frames_carry_the_kinect_camera_and_their_depth_maps(redkitchen):
     # camera-intrinsics.txt is at the dataset root, beside the scene folder.
     frames = SevenScenes(root=str(redkitchen), scene="redkitchen").frames("test")
-    assert {f.camera for f in frames} == {PinholeCamera(585.0, 585.0, 320.0, 240.0, 640, 480)}
+    # The file is 7-Scenes' depth calibration (intrinsics_for=depth, the default); the
+    # colour images get the nominal 525 camera and depth is registered to them.
+    assert {f.depth_camera for f in frames} == {PinholeCamera(585.0, 585.0, 320.0, 240.0, 640, 480)}
+    assert {f.camera for f in frames} == {PinholeCamera(525.0, 525.0, 320.0, 240.0, 640, 480)}
+    assert all(f.depth_to_colour is SEVENSCENES_DEPTH_TO_COLOUR for f in frames)
     assert all(f.depth_path is not None and f.depth_path.is_file() for f in frames)
     assert frames[0].depth_path == frames[0].image_path.with_name("frame-000000.depth.png")
     depth = read_frame_depth(frames[0])

@@ -5,13 +5,20 @@ import cv2
 import numpy as np
 import pytest
 
-from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
+from relocfw.core.camera import SEVENSCENES_COLOUR, SEVENSCENES_DEPTH, PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import pose_to_matrix
 from relocfw.core.imaging import read_rgb
 from relocfw.data.depth import read_frame_depth
 from relocfw.data.intrinsics import read_intrinsics_matrix
-from relocfw.data.sevenscenes import SevenScenes, load_sevenscenes, read_pose_file, read_split
+from relocfw.data.sevenscenes import (
+    REGISTERED_MARKER,
+    SEVENSCENES_DEPTH_TO_COLOUR,
+    SevenScenes,
+    load_sevenscenes,
+    read_pose_file,
+    read_split,
+)
 
 
 def test_real_stairs_frames_load(stairs_sample):
@@ -155,12 +162,19 @@ def test_the_roots_intrinsics_sized_like_the_images(scene_copy):
 def test_without_an_intrinsics_file_the_7scenes_default(scene_copy):
     (scene_copy / "camera-intrinsics.txt").unlink()
     frames = load_sevenscenes(scene_copy, None, "train")
-    assert {f.camera for f in frames} == {SEVENSCENES_DEFAULT}
+    # The synthetic scene says its depth is registered: no depth camera.
+    assert {f.camera for f in frames} == {SEVENSCENES_COLOUR}
+    assert {f.depth_camera for f in frames} == {None}
+    (scene_copy / REGISTERED_MARKER).unlink()
+    frames = load_sevenscenes(scene_copy, None, "train")
+    assert {(f.camera, f.depth_camera) for f in frames} == {(SEVENSCENES_COLOUR, SEVENSCENES_DEPTH)}
+    assert all(f.depth_to_colour is SEVENSCENES_DEPTH_TO_COLOUR for f in frames)
 
 
-def test_real_stairs_frames_have_the_default_camera_and_no_depth(stairs_sample):
+def test_real_stairs_frames_have_the_default_cameras_and_no_depth(stairs_sample):
     frames = SevenScenes(stairs_sample, "stairs").frames("test")
-    assert all(f.camera == SEVENSCENES_DEFAULT and f.depth_path is None for f in frames)
+    assert all(f.camera == SEVENSCENES_COLOUR and f.depth_path is None for f in frames)
+    assert all(f.depth_camera == SEVENSCENES_DEPTH for f in frames)
 
 
 def test_depth_paths_where_the_depth_maps_are(scene_copy):
