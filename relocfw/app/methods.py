@@ -244,6 +244,14 @@ def dataset_settings(cfg: DictConfig) -> dict[str, Any]:
     values = OmegaConf.to_container(cfg.dataset, resolve=True)
     # metric only names the unit of the reports, and depth_units_per_metre and
     # intrinsics_for only how the structure stage reads depth and cameras (the network
-    # never sees a camera): the same images and poses train the same model.
-    left_out = ("cache_dir", "quiet", "metric", "depth_units_per_metre", "intrinsics_for")
+    # never sees a camera), and a COLMAP model's points only what the structure stage
+    # lifts: the same images and poses train the same model.
+    left_out = (
+        "cache_dir",
+        "quiet",
+        "metric",
+        "depth_units_per_metre",
+        "intrinsics_for",
+        "points",
+    )
     return {k: v for k, v in values.items() if k not in left_out}

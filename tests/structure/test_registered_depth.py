@@ -239,3 +239,18 @@ def test_intrinsics_for_leaves_the_trained_models_key_alone():
 
     assert settings("depth") == settings("colour")
     assert "intrinsics_for" not in settings("depth") and settings("depth")["root"] == "r"
+
+
+def test_colmap_points_leave_the_trained_models_key_alone():
+    # dataset.points only decides whether the structure stage gets the model's 3-D
+    # points: the images and poses the network trains on are the same.
+    from omegaconf import OmegaConf
+
+    from relocfw.app.methods import dataset_settings
+
+    def settings(points: bool) -> dict:
+        dataset = {"_target_": "relocfw.data.colmap.ColmapDataset", "root": "r"}
+        return dataset_settings(OmegaConf.create({"dataset": {**dataset, "points": points}}))
+
+    assert settings(True) == settings(False)
+    assert "points" not in settings(True) and settings(True)["root"] == "r"
