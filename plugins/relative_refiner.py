@@ -145,7 +145,7 @@ class RelativeRefiner(PoseRefiner):
         max_features: int = 1024,
         ratio: float = 0.8,
         max_error_px: float = 2.0,
-        min_inliers: int = 20,
+        min_inliers: int = 12,
         min_keyframes: int = 2,
         min_parallax_deg: float = 1.0,
         min_ray_angle_deg: float = 3.0,
