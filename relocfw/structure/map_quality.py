@@ -7,7 +7,7 @@ transform) has its depth registered into the colour image first
 (relocfw.structure.registration), so each keypoint is compared with the depth of its
 own surface point; a view without one is read pixel for pixel as registered already.
 Registration leaves holes where the depth sensor did not see, and the sensor's own
-noise (about 1 cm at 2 m, more near edges) stays in the reference.
+noise, larger near depth edges and with distance, stays in the reference.
 """
 
 from __future__ import annotations
