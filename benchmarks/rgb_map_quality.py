@@ -100,13 +100,18 @@ def colmap_observations(
     many SIFT keypoints the model's images hold in all."""
     pycolmap_module().logging.minloglevel = 2
     names = [str(frame.image_path.relative_to(SCENE)) for frame in frames]
-    workspace = Path(tempfile.mkdtemp(prefix="rgb_map_quality_colmap_"))
-    model = triangulate_posed_images(
-        SCENE, names, [frame.pose for frame in frames], COLMAP_CAMERA, workspace, max_features
-    )
-    reconstruction = pycolmap_module().Reconstruction(str(model))
-    keypoints = sum(image.num_points2D() for image in reconstruction.images.values())
-    seen = read_model_observations(model / "images.bin")
+    with tempfile.TemporaryDirectory(prefix="rgb_map_quality_colmap_") as workspace:
+        model = triangulate_posed_images(
+            SCENE,
+            names,
+            [frame.pose for frame in frames],
+            COLMAP_CAMERA,
+            Path(workspace) / "colmap",
+            max_features,
+        )
+        reconstruction = pycolmap_module().Reconstruction(str(model))
+        keypoints = sum(image.num_points2D() for image in reconstruction.images.values())
+        seen = read_model_observations(model / "images.bin")
     empty = PointObservations(np.zeros((0, 2)), np.zeros((0, 3)), np.zeros(0, np.int64))
     return [seen.get(name, empty) for name in names], int(keypoints)
 
