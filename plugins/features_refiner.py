@@ -32,13 +32,15 @@ stream without a confident pose (its first frame, or after a fallback) starts fr
 retrieval; `reset` forgets every stream.
 
 On a map that is not metric (refine.metric=false, set from dataset.metric: an
-unaligned COLMAP model), the triangulation's one length in metres, the 5 cm smallest
-baseline, is measured against the map instead: half the median distance between a
-map image and its nearest other map image (the bound's job is to skip partners
-standing almost where the image stands, and in a map of unknown scale "almost" can
-only be told from how far apart its images usually are). Depth maps are refused
-there (they are in metres and cannot be lifted into poses that are not); a COLMAP
-model's points are in its own units, as its poses, so they serve at any scale.
+unaligned COLMAP model), the default triangulation (refine.triangulation.method=
+tracks) is unchanged: all its settings are angles, pixels and counts. Only
+method=two_view has a length in metres, its 5 cm smallest baseline, which is then
+measured against the map instead: half the median distance between a map image and
+its nearest other map image (the bound's job is to skip partners standing almost
+where the image stands, and in a map of unknown scale "almost" can only be told from
+how far apart its images usually are). Depth maps are refused there (they are in
+metres and cannot be lifted into poses that are not); a COLMAP model's points are in
+its own units, as its poses, so they serve at any scale.
 
 Model files (format 5) keep the fitted refiner whole (`state` / `load_state`: the map's
 structure as flat arrays, relocfw.structure.map_state, the keyframe descriptors and

@@ -232,9 +232,10 @@ class Relocalizer:
 
         Args:
             frames: per image, what the refiner may use of it: objects with `name`,
-                `camera`, `depth_path`, `depth_units_per_metre`, `depth_camera` and
-                `depth_to_colour`, such as the dataset's relocfw.data.frames.Frame (a
-                missing attribute: unknown).
+                `camera`, `depth_path`, `depth_units_per_metre`, `depth_camera`,
+                `depth_to_colour` and `observations` (a COLMAP model's 3-D points),
+                such as the dataset's relocfw.data.frames.Frame (a missing attribute:
+                unknown).
 
         Returns:
             The [N, D] training descriptors.

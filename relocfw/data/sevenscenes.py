@@ -27,6 +27,7 @@ Each frame also gets its cameras and, where the folder has it, its depth map:
 from __future__ import annotations
 
 import re
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +51,10 @@ SENSORS = ("depth", "colour")
 # A file whose presence in a scene folder (or the dataset root) says that its depth
 # maps are registered to the colour images, pixel for pixel.
 REGISTERED_MARKER = "depth-registered.txt"
+# A file taken as the depth camera whose fx / width lies this close (relative) to the
+# colour camera's 525 / 640 is probably a colour calibration (the depth sensor's is
+# 585 / 640, 11% more).
+COLOUR_LOOKALIKE_SHARE = 0.03
 
 # The Kinect's depth-to-colour transform, x_colour = R x_depth + t (metres): the
 # calibration that DSAC* and ACE use on 7-Scenes (vislearn/dsacstar and nianticlabs/ace,
@@ -164,6 +169,22 @@ def depth_registered(folder: Path) -> bool:
     return any((place / REGISTERED_MARKER).is_file() for place in (folder, folder.parent))
 
 
+def note_colour_lookalike(path: Path, camera: PinholeCamera) -> None:
+    """One line on stderr when `camera`, read from `path` as the depth camera, has the
+    colour camera's focal length for its width: a colour calibration, most likely,
+    which as the depth camera would register every depth map wrongly."""
+    ratio = camera.fx / camera.width
+    colour = SEVENSCENES_COLOUR.fx / SEVENSCENES_COLOUR.width
+    if abs(ratio - colour) <= COLOUR_LOOKALIKE_SHARE * colour:
+        print(
+            f"note: {path}: fx={camera.fx:g} for {camera.width} px wide images looks like "
+            f"the colour camera's ({SEVENSCENES_COLOUR.fx:g} for "
+            f"{SEVENSCENES_COLOUR.width}), yet it is read as the depth camera; if the file "
+            "describes the colour camera, set dataset.intrinsics_for=colour",
+            file=sys.stderr,
+        )
+
+
 def scene_cameras(
     folder: Path, images: Sequence[Path], intrinsics_for: str = "depth"
 ) -> SceneCameras:
@@ -199,6 +220,7 @@ def scene_cameras(
     # 7-Scenes); a copy resized to another size scales the nominal camera with it.
     size = (from_file.width, from_file.height)
     if intrinsics_for == "depth":
+        note_colour_lookalike(path, from_file)
         return SceneCameras(
             SEVENSCENES_COLOUR.scaled_to(*size), from_file, SEVENSCENES_DEPTH_TO_COLOUR
         )

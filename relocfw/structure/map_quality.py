@@ -1,11 +1,13 @@
 """How good an RGB-only map is: how many keypoints got a 3-D point, and how far those
 points lie from where the map images' depth maps put the same keypoints.
 
-Depth here is read at the colour pixel (relocfw.structure.lifting, as
-build_from_depth does): on 7-Scenes, whose depth is not registered to the colour
-image, that reference is itself off by the sensors' parallax, so the errors are an
-upper bound of the points' own error near depth edges and a fair one on smooth
-surfaces.
+Depth is read as build_from_depth reads it (structure_map.depth_of_view): a view
+with a depth camera (7-Scenes: the 585 sensor and the Kinect's depth-to-colour
+transform) has its depth registered into the colour image first
+(relocfw.structure.registration), so each keypoint is compared with the depth of its
+own surface point; a view without one is read pixel for pixel as registered already.
+Registration leaves holes where the depth sensor did not see, and the sensor's own
+noise, larger near depth edges and with distance, stays in the reference.
 """
 
 from __future__ import annotations

@@ -171,6 +171,20 @@ def test_without_an_intrinsics_file_the_7scenes_default(scene_copy):
     assert all(f.depth_to_colour is SEVENSCENES_DEPTH_TO_COLOUR for f in frames)
 
 
+@pytest.mark.parametrize("fx, noted", [(525 * 48 / 640, True), (585 * 48 / 640, False)])
+def test_a_colour_looking_depth_file_is_noted(scene_copy, capsys, fx, noted):
+    (scene_copy / REGISTERED_MARKER).unlink()
+    write_intrinsics(scene_copy / "camera-intrinsics.txt", fx, fx, 24, 18)
+    frames = load_sevenscenes(scene_copy, None, "train")  # intrinsics_for="depth"
+    assert all(f.depth_camera.fx == pytest.approx(fx) for f in frames)
+    notes = [line for line in capsys.readouterr().err.splitlines() if "intrinsics_for" in line]
+    assert len(notes) == int(noted)
+    if noted:
+        assert "dataset.intrinsics_for=colour" in notes[0] and "camera-intrinsics.txt" in notes[0]
+    load_sevenscenes(scene_copy, None, "train", intrinsics_for="colour")
+    assert "intrinsics_for" not in capsys.readouterr().err
+
+
 def test_real_stairs_frames_have_the_default_cameras_and_no_depth(stairs_sample):
     frames = SevenScenes(stairs_sample, "stairs").frames("test")
     assert all(f.camera == SEVENSCENES_COLOUR and f.depth_path is None for f in frames)
