@@ -78,8 +78,8 @@ from structure_query import (
     thumbnail,
 )
 
-from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
-from relocfw.data.intrinsics import read_intrinsics_matrix
+from relocfw.core.camera import PinholeCamera
+from relocfw.data.sevenscenes import SceneCameras, scene_cameras
 from relocfw.structure import MapView, StructureMap, build_from_depth, localize_against
 from relocfw.structure import structure_map as structure_module
 
@@ -106,8 +106,8 @@ MIB = 2**20
 class TimedViews(LazyViews):
     """LazyViews that add the time of each image read (and MapView check) to a dict."""
 
-    def __init__(self, frames: list[Frame], camera: PinholeCamera, seconds: dict) -> None:
-        super().__init__(frames, camera)
+    def __init__(self, frames: list[Frame], cameras: SceneCameras, seconds: dict) -> None:
+        super().__init__(frames, cameras)
         self.seconds = seconds
 
     def __getitem__(self, index: int) -> MapView:  # type: ignore[override]
@@ -204,12 +204,12 @@ def map_bytes(structure: StructureMap) -> int:
 
 
 def build_and_save(
-    frames: list[Frame], camera: PinholeCamera, max_features: int, path: Path
+    frames: list[Frame], cameras: SceneCameras, max_features: int, path: Path
 ) -> tuple[StructureMap, dict]:
     """Build the map of `frames` with build_from_depth and save it, timing each part."""
     seconds = dict.fromkeys(BUILD_PARTS, 0.0)
     calls = dict.fromkeys(BUILD_PARTS, 0)
-    views = TimedViews(frames, camera, seconds)
+    views = TimedViews(frames, cameras, seconds)
     rss_before = peak_rss_mib()
     # CPU time beside wall time: on a shared machine the wall time also holds the
     # time other processes had the cores.
@@ -299,7 +299,7 @@ def check_memory(size: int, forecast: dict | None, ignore: bool) -> None:
 def build_row(
     size: int,
     frames: list[Frame],
-    camera: PinholeCamera,
+    cameras: SceneCameras,
     args: argparse.Namespace,
     folder: Path,
     earlier: dict | None,
@@ -315,7 +315,7 @@ def build_row(
     check_memory(size, forecast, args.ignore_memory_forecast)
     load_before = os.getloadavg()[0]
     structure, measured = build_and_save(
-        built_views, camera, args.max_features, folder / f"map-{size}.npz"
+        built_views, cameras, args.max_features, folder / f"map-{size}.npz"
     )
     row = scaled(measured, size / len(built_views)) if extrapolate else measured
     return (
@@ -466,13 +466,9 @@ def main() -> None:
     scene = args.data / args.scene
     if not scene.is_dir():
         raise SystemExit(f"no scene folder {scene}")
-    intrinsics = args.data / "camera-intrinsics.txt"
-    camera = (
-        read_intrinsics_matrix(intrinsics, 640, 480)
-        if intrinsics.is_file()
-        else SEVENSCENES_DEFAULT
-    )
     frames = frames_of(scene, ALL_SEQUENCES)
+    # The loader's cameras: colour 525 for keypoints, depth 585 registered onto it.
+    cameras = scene_cameras(scene, [frame.colour for frame in frames], intrinsics_for="depth")
     if args.real_frames is not None:
         frames = evenly_spaced(frames, args.real_frames)
     query_size = query_map_size(args, len(frames))
@@ -503,13 +499,13 @@ def main() -> None:
         folder.mkdir(parents=True, exist_ok=True)
         for size in args.map_sizes:
             earlier = report["builds"][-1] if report["builds"] else None
-            structure, views, row = build_row(size, frames, camera, args, folder, earlier)
+            structure, views, row = build_row(size, frames, cameras, args, folder, earlier)
             report["builds"].append(row)
             marked = " (extrapolated)" if row["extrapolated"] else ""
             print(f"map of {size}: {row['seconds']['total']:.1f} s{marked}")
             if size == query_size:
                 queries = evenly_spaced(frames_of(scene, TEST_SEQUENCES), args.queries)
-                report["query"] = query_stage(structure, views, queries, camera, args)
+                report["query"] = query_stage(structure, views, queries, cameras.colour, args)
             del structure
             gc.collect()  # free this map before the next, larger one is built
             write_json(report, args.out)

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from relocfw.app.devices import pick_device
+from relocfw.core.atomic_files import LOCKED_GRACE_SECONDS
 from relocfw.core.errors import ConfigError
 from relocfw.model.checkpoints import load_checkpoint
 from tests.cli_runs import relocfw, relocfw_here
@@ -316,6 +317,12 @@ def test_killed_training_resumes(tmp_path):
     assert checkpoints, "no checkpoint was written before the kill"
     # Whatever the kill interrupted, the checkpoint itself is whole and readable.
     assert not load_checkpoint(checkpoints[0])["complete"]
+    # A kill that lands mid-write leaves a temporary; the cleaner spares temporaries
+    # younger than its grace age (a writer may be about to lock one), so age any
+    # left here past it: the resumed run must then remove them.
+    past = time.time() - 2 * LOCKED_GRACE_SECONDS
+    for temporary in env_cache.glob("checkpoints/.*"):
+        os.utime(temporary, (past, past))
     again = relocfw(args, tmp_path, env_cache)
     assert not list(env_cache.glob("checkpoints/.*")), "a killed writer's temporary was left"
     assert again.returncode == 0, again.stderr
