@@ -73,8 +73,9 @@ from relocfw.structure import (
     structure_key,
 )
 from relocfw.structure.colmap_structure import checked_radius
-from relocfw.structure.features import LocalFeatures
+from relocfw.structure.features import LocalFeatures, checked_image_scale
 from relocfw.structure.map_state import map_of_state, map_state
+from relocfw.structure.match_index import MatchIndex
 from relocfw.structure.refiner_inputs import (
     builder_parameters,
     checked_triangulation,
@@ -131,6 +132,10 @@ class FeaturesRefiner(PoseRefiner):
         triangulation: how structure=triangulated builds its points (method tracks or
             two_view and the track settings, relocfw.structure.tracks.TrackSettings);
             None: the defaults. Checked here, each key named.
+        image_scale: the share of each image side SIFT runs at, map and query, in
+            (0, 1] (0.5: a quarter of the pixels, about 4x faster extraction).
+        match_points_only: match queries only against map keypoints that have a 3-D
+            point (relocfw.structure.match_index); false: against every keypoint.
     """
 
     def __init__(
@@ -147,6 +152,8 @@ class FeaturesRefiner(PoseRefiner):
         metric: bool = True,
         radius_px: float = 2.5,
         triangulation: Mapping[str, Any] | None = None,
+        image_scale: float = 1.0,
+        match_points_only: bool = True,
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -169,6 +176,15 @@ class FeaturesRefiner(PoseRefiner):
         # Checked even for structure=depth: a typo there should not wait for the
         # day the same config is run with features_rgb.
         self.triangulation = checked_triangulation(triangulation)
+        try:
+            self.image_scale = checked_image_scale(image_scale)
+        except ConfigError as error:
+            raise ConfigError(f"refine.{error}") from None
+        if not isinstance(match_points_only, bool):
+            raise ConfigError(
+                f"refine.match_points_only must be true or false, got {match_points_only!r}"
+            )
+        self.match_points_only = match_points_only
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
 
     def source_for(self, frames: Sequence[object]) -> str:
@@ -214,7 +230,11 @@ class FeaturesRefiner(PoseRefiner):
         if parameters is None:
             parameters = self.build_parameters(views)
         source = self.source_for(views)
-        return structure_settings(source, self.max_features, views, parameters)
+        settings = structure_settings(source, self.max_features, views, parameters)
+        if self.image_scale != 1.0:
+            # Only here, so maps at full size keep the keys (and caches) they had.
+            settings["image_scale"] = self.image_scale
+        return settings
 
     def build_parameters(self, views: Sequence[MapImage]) -> dict:
         """The builder's keyword arguments (refiner_inputs.builder_parameters; for
@@ -253,15 +273,23 @@ class FeaturesRefiner(PoseRefiner):
         parameters = self.build_parameters(views)
 
         def build() -> StructureMap:
+            scale = self.image_scale
             if source == "depth":
-                return StructureMap.build_from_depth(map_views, self.max_features, quiet=quiet)
+                return StructureMap.build_from_depth(
+                    map_views, self.max_features, quiet=quiet, image_scale=scale
+                )
             if source == "colmap":
                 observations = [getattr(view, "observations", None) for view in views]
                 return build_from_colmap_points(
-                    map_views, observations, self.max_features, quiet=quiet, **parameters
+                    map_views,
+                    observations,
+                    self.max_features,
+                    quiet=quiet,
+                    image_scale=scale,
+                    **parameters,
                 )
             return StructureMap.build_by_triangulation(
-                map_views, self.max_features, quiet=quiet, **parameters
+                map_views, self.max_features, quiet=quiet, image_scale=scale, **parameters
             )
 
         if self.cache_dir is None:
@@ -275,6 +303,7 @@ class FeaturesRefiner(PoseRefiner):
                 [(v.depth_camera, v.depth_to_colour) for v in views],
             )
             self.structure = cached_structure_map(self.cache_dir, key, build, quiet)
+        self.match_index = MatchIndex.of(self.structure, self.match_points_only)
         if source != "triangulated" and not self.structure.point_counts().any():
             # Every query would fall back: a configuration that cannot work.
             if source == "colmap":
@@ -304,7 +333,7 @@ class FeaturesRefiner(PoseRefiner):
         loaded from it needs no map image, depth file or cache."""
         if not hasattr(self, "structure"):
             raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
-        keys = ("keyframes", *STATE_INTEGERS, *STATE_NUMBERS)
+        keys = ("keyframes", "match_points_only", *STATE_INTEGERS, *STATE_NUMBERS)
         return {
             **map_state(self.structure),
             **self.zscore.state(),
@@ -319,9 +348,14 @@ class FeaturesRefiner(PoseRefiner):
         structure = map_of_state(state, STATE_LABEL)
         keyframe_points, zscore = stored_keyframe_descriptors(state, len(structure))
         options = stored_options(state)
+        # Files written before these options matched every keypoint of a map whose
+        # SIFT ran at full size; that is how they answer.
+        options.setdefault("image_scale", 1.0)
+        options.setdefault("match_points_only", False)
         for key, value in options.items():
             setattr(self, key, value)
         self.structure = structure
+        self.match_index = MatchIndex.of(structure, self.match_points_only)
         self.zscore = zscore
         self.points = keyframe_points
         self.poses = list(structure.poses)
@@ -399,6 +433,8 @@ class FeaturesRefiner(PoseRefiner):
             max_error_px=self.max_error_px,
             min_inliers=self.min_inliers,
             query_features=features,
+            image_scale=self.image_scale,
+            match_index=self.match_index,
         )
         seconds = {"retrieval": retrieval, **answer.seconds}
         if not answer.success:

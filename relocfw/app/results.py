@@ -42,6 +42,19 @@ def run_method(
     Returns:
         The method's answers and the map's [N, D] training descriptors.
     """
+    features = fit_method(method, relocalizer, train, quiet, calibration)
+    return evaluate(method, relocalizer, *test, quiet=quiet), features
+
+
+def fit_method(
+    method: str,
+    relocalizer: Relocalizer,
+    train: Split,
+    quiet: bool = False,
+    calibration: Calibration | None = None,
+) -> np.ndarray:
+    """Fit the map on the training split and calibrate the error bounds on the
+    validation block where there is one; the map's [N, D] training descriptors."""
     frames = train[0]
     features = relocalizer.fit(
         train[1],
@@ -53,7 +66,7 @@ def run_method(
     if calibration is not None:
         bounds, _ = calibrate_relocalizer(relocalizer, calibration, quiet)
         print(f"{method}: {bounds.describe()}")
-    return evaluate(method, relocalizer, *test, quiet=quiet), features
+    return features
 
 
 def note_skipped_views(method: str, relocalizer: Relocalizer) -> None:

@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from relocfw.core.errors import ConfigError
 from relocfw.core.geometry import QUATERNION_MINIMUM, orientation_error_deg, position_error
 from relocfw.core.interfaces import Backbone
 from relocfw.core.pipeline import Relocalizer
@@ -112,6 +113,66 @@ def evaluate(
     )
 
 
+def evaluate_round_robin(
+    relocalizers: Mapping[str, Relocalizer],
+    frames: Sequence[Frame],
+    images: Sequence[np.ndarray],
+    quiet: bool = False,
+) -> dict[str, MethodResult]:
+    """Localize every image with every relocalizer, one query at a time, the methods
+    taking turns: query i runs the methods in the order rotated by i.
+
+    Timing methods one after another charges each the machine's moods while it runs
+    (another job, a warm or cold cache, the CPU's clock); taking turns query by query
+    spreads them over all methods alike, so their times compare. Each method is warmed
+    up first, as `evaluate` does, and sees the queries in order (a tracking refiner's
+    streams stay whole). Answers are those of `evaluate` with one query at a time.
+
+    Raises:
+        ConfigError: a relocalizer answers queries in groups (query.queries_at_once
+            > 1), whose time is shared among a group and cannot take turns per query.
+    """
+    names = list(relocalizers)
+    for name in names:
+        options = getattr(relocalizers[name], "options", None)
+        if getattr(options, "queries_at_once", 1) != 1:
+            raise ConfigError(
+                f"compare.round_robin times one query at a time, but {name!r} answers "
+                f"{options.queries_at_once} at once (query.queries_at_once): set it to 1 "
+                "or compare.round_robin=false"
+            )
+    cameras = [getattr(frame, "camera", None) for frame in frames]
+    frame_names = [getattr(frame, "name", None) for frame in frames]
+
+    def localize(relocalizer: Relocalizer, index: int) -> Localization:
+        if getattr(relocalizer, "refiner", None) is not None:
+            return relocalizer.localize(images[index], cameras[index], frame_names[index])
+        return relocalizer.localize(images[index])
+
+    if len(images):
+        for relocalizer in relocalizers.values():
+            localize(relocalizer, 0)
+            if getattr(relocalizer, "refiner", None) is not None:
+                relocalizer.refiner.reset()  # the timed pass starts with no history
+    answers: dict[str, list[Localization]] = {name: [] for name in names}
+    progress = Progress(len(frames), f"relocalizing ({len(names)} methods in turn)", quiet=quiet)
+    for index in range(len(images)):
+        turn = index % len(names) if names else 0
+        for name in names[turn:] + names[:turn]:
+            answers[name].append(localize(relocalizers[name], index))
+        progress.advance()
+    progress.close()
+    return {
+        name: MethodResult(
+            name,
+            tuple(frames),
+            tuple(answers[name]),
+            spread_source=spread_source(relocalizers[name]),
+        )
+        for name in names
+    }
+
+
 def spread_source(relocalizer: object) -> str:
     """What the chosen crop's samples are, as the uncertainty tables name it; "" when
     nothing is sampled or `relocalizer` is not a Relocalizer (any object with
@@ -150,10 +211,22 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
         **accuracy_metrics(positions, result.orientation_errors()),
         "median_seconds_per_query": float(np.median([a.seconds for a in result.answers])),
         "mean_seconds_per_query": float(np.mean([a.seconds for a in result.answers])),
+        "median_ms_network": 1000.0
+        * float(np.median([network_seconds(a) for a in result.answers])),
         "mean_network_passes": float(np.mean([a.network_passes for a in result.answers])),
         "mean_crops_scored": float(np.mean([a.evaluations for a in result.answers])),
     }
     return summary | refine_columns(result) | uncertainty_columns(result) | bound_columns(result)
+
+
+def network_seconds(answer: Localization) -> float:
+    """The part of a query's time before its refiner: the crop search with its network
+    passes (the whole time for a method without a refiner). With the refiner's parts
+    (refine_median_ms_*) it makes up the query's time, median_seconds_per_query."""
+    # "tracking_retry" is the retry's whole time, whose parts are already added into
+    # the others (plugins/features_refiner.py): counted once.
+    parts = (spent for part, spent in answer.refine_seconds.items() if part != "tracking_retry")
+    return float(answer.seconds - sum(parts))
 
 
 def refined_answers(result: MethodResult) -> list[Localization]:

@@ -22,7 +22,7 @@ from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.observations import PointObservations
 from relocfw.core.options import integer_at_least
 from relocfw.core.progress import Progress
-from relocfw.structure.features import extract_rootsift
+from relocfw.structure.features import checked_image_scale, extract_rootsift
 from relocfw.structure.map_view import MapView
 from relocfw.structure.structure_map import (
     SkippedView,
@@ -89,6 +89,7 @@ def build_from_colmap_points(
     max_features: int = 1024,
     radius_px: float = 2.5,
     quiet: bool = False,
+    image_scale: float = 1.0,
 ) -> StructureMap:
     """The structure of map images whose 3-D points a COLMAP model holds.
 
@@ -103,6 +104,7 @@ def build_from_colmap_points(
         max_features: the most keypoints per image (>= 1).
         radius_px: the farthest an observation may be from the keypoint taking it.
         quiet: show no progress bar.
+        image_scale: the share of each side SIFT runs at, in (0, 1].
 
     Returns:
         StructureMap with source "colmap"; `skipped_views` lists the views that got
@@ -116,6 +118,7 @@ def build_from_colmap_points(
     checked_views(views)
     max_features = integer_at_least("max_features", max_features, 1)
     radius = checked_radius(radius_px)
+    image_scale = checked_image_scale(image_scale)
     if len(observations) != len(views):
         raise DataError(
             f"{len(views)} map views but {len(observations)} observation sets; one per view"
@@ -129,7 +132,7 @@ def build_from_colmap_points(
             raise DataError(
                 f"observations[{number}] ({view.name!r}) must be PointObservations or None"
             )
-        found = on_descriptor_grid(extract_rootsift(view.image, max_features))
+        found = on_descriptor_grid(extract_rootsift(view.image, max_features, image_scale))
         lifted = np.full((len(found), 3), np.nan, dtype=np.float32)
         if seen is None or not len(seen):
             skipped.append(SkippedView(view.name, "the COLMAP model observed no point in it"))

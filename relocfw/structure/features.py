@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from relocfw.core.errors import DataError
+from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import check_rgb_image
 from relocfw.core.options import integer_at_least
 
@@ -86,12 +86,18 @@ def root_sift(descriptors: np.ndarray) -> np.ndarray:
     return np.sqrt(np.abs(values) / np.maximum(l1, np.finfo(np.float32).tiny))
 
 
-def extract_rootsift(image: np.ndarray, max_features: int = 1024) -> LocalFeatures:
+def extract_rootsift(
+    image: np.ndarray, max_features: int = 1024, image_scale: float = 1.0
+) -> LocalFeatures:
     """SIFT keypoints of an RGB image with RootSIFT descriptors (OpenCV's SIFT).
 
     Args:
         image: [H, W, 3] uint8 RGB (relocfw.core.imaging.read_rgb reads one).
         max_features: the most keypoints to keep (>= 1), the strongest by response.
+        image_scale: the size, as a share of the image's, that SIFT runs on, in
+            (0, 1]: 0.5 halves each side (area-averaged), about 4x less work, and drops
+            the finest keypoints. Keypoints are returned in the pixels of `image`
+            either way, so a camera of the full image still describes them.
 
     Returns:
         LocalFeatures with at most `max_features` rows: keypoints [N, 2] float32 pixel
@@ -105,7 +111,12 @@ def extract_rootsift(image: np.ndarray, max_features: int = 1024) -> LocalFeatur
     """
     check_rgb_image(image)
     max_features = integer_at_least("max_features", max_features, 1)
+    scale = checked_image_scale(image_scale)
     grey = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+    if scale != 1.0:
+        height, width = grey.shape
+        size = (max(1, round(width * scale)), max(1, round(height * scale)))
+        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
     sift = cv2.SIFT_create(nfeatures=max_features)
     keypoints, descriptors = sift.detectAndCompute(grey, None)
     if descriptors is None or len(keypoints) == 0:
@@ -117,4 +128,32 @@ def extract_rootsift(image: np.ndarray, max_features: int = 1024) -> LocalFeatur
     responses = np.array([k.response for k in keypoints], dtype=np.float32)
     order = np.argsort(-responses, kind="stable")[:max_features]
     points = np.array([keypoints[i].pt for i in order], dtype=np.float32).reshape(-1, 2)
+    if scale != 1.0:
+        points = to_full_image(
+            points, image.shape[1] / grey.shape[1], image.shape[0] / grey.shape[0]
+        )
     return LocalFeatures(points, root_sift(descriptors[order]))
+
+
+def checked_image_scale(image_scale: object) -> float:
+    """`image_scale` as a float in (0, 1], or a ConfigError naming it (above 1 would
+    upsample: slower, and no keypoint the image does not hold)."""
+    try:
+        value = float(image_scale)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        value = float("nan")
+    if isinstance(image_scale, bool) or not 0.0 < value <= 1.0:
+        raise ConfigError(f"image_scale must be in (0, 1] (1: full size), got {image_scale!r}")
+    return value
+
+
+def to_full_image(points: np.ndarray, scale_x: float, scale_y: float) -> np.ndarray:
+    """Pixels of a resized image in the pixels of the image it was resized from.
+
+    Pixel centres sit at integers (OpenCV's convention): the resized image's pixel
+    edge -0.5 is the full image's edge -0.5, hence the half-pixel shifts.
+    """
+    full = np.empty_like(points)
+    full[:, 0] = (points[:, 0] + 0.5) * scale_x - 0.5
+    full[:, 1] = (points[:, 1] + 0.5) * scale_y - 0.5
+    return full

@@ -25,7 +25,8 @@ from relocfw.core.imaging import check_rgb_image
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.values import Pose
 from relocfw.structure.absolute_pose import solve_absolute_pose
-from relocfw.structure.features import LocalFeatures, extract_rootsift
+from relocfw.structure.features import LocalFeatures, checked_image_scale, extract_rootsift
+from relocfw.structure.match_index import MatchIndex
 from relocfw.structure.matching import (
     checked_ratio,
     match_against_views,
@@ -145,6 +146,8 @@ def localize_against(
     max_error_px: float = 8.0,
     min_inliers: int = 12,
     query_features: LocalFeatures | None = None,
+    image_scale: float = 1.0,
+    match_index: MatchIndex | None = None,
 ) -> StructureAnswer:
     """The pose of a query image from its matches with a few map images.
 
@@ -162,6 +165,12 @@ def localize_against(
         query_features: the query's LocalFeatures when the caller has them already
             (extracted at `camera`'s size); then `query_image` is not read and
             "features" takes 0 seconds.
+        image_scale: the share of each side SIFT runs at, in (0, 1], when
+            extracting (features.extract_rootsift; best the map's own).
+        match_index: the map's MatchIndex (made once per map): matching then reads
+            its stacked descriptors instead of stacking the keyframes' per query,
+            and only the keypoints it holds (with a 3-D point, by default) are
+            candidates. None: the keyframes' descriptors, every keypoint.
 
     Returns:
         StructureAnswer. Zero correspondences (a blank or unrelated image, keyframes
@@ -184,6 +193,12 @@ def localize_against(
     max_features = integer_at_least("max_features", max_features, 1)
     min_inliers = integer_at_least("min_inliers", min_inliers, 4)
     bound = positive_number("max_error_px", max_error_px)
+    image_scale = checked_image_scale(image_scale)
+    if match_index is not None and len(match_index) != len(structure):
+        raise DataError(
+            f"match_index holds {len(match_index)} images, the structure {len(structure)}; "
+            "make it with MatchIndex.of(structure)"
+        )
 
     start = time.perf_counter()
     if query_features is None:
@@ -196,13 +211,16 @@ def localize_against(
                 f"query_image is {width}x{height} but the camera is "
                 f"{camera.width}x{camera.height}; pass camera.scaled_to({width}, {height})"
             )
-        query_features = extract_rootsift(query_image, max_features)
+        query_features = extract_rootsift(query_image, max_features, image_scale)
     elif not isinstance(query_features, LocalFeatures):
         raise DataError(
             f"query_features must be LocalFeatures, got {type(query_features).__name__}"
         )
     features_done = time.perf_counter()
-    points_2d, points_3d = correspondences_of(structure, query_features, chosen, ratio)
+    if match_index is None:
+        points_2d, points_3d = correspondences_of(structure, query_features, chosen, ratio)
+    else:
+        points_2d, points_3d = match_index.correspondences(query_features, chosen, ratio)
     matching_done = time.perf_counter()
     solved = solve_absolute_pose(points_2d, points_3d, camera, bound, min_inliers)
     solve_done = time.perf_counter()

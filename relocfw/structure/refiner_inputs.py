@@ -59,7 +59,8 @@ def builder_parameters(
     views: Sequence[MapImage],
     triangulation: Mapping[str, Any] | None = None,
 ) -> dict:
-    """The keyword arguments the builder gets besides views, max_features and quiet:
+    """The keyword arguments the builder gets besides views, max_features, quiet and
+    image_scale:
     none for structure=depth and colmap (the refiner adds its radius_px); for
     triangulated with method tracks, the checked track settings (all scale-free); for
     method two_view, every parameter of build_by_two_view_triangulation at its default
@@ -73,7 +74,8 @@ def builder_parameters(
     parameters = {
         name: parameter.default
         for name, parameter in inspect.signature(build_by_two_view_triangulation).parameters.items()
-        if name not in ("views", "max_features", "quiet")
+        # image_scale is the refiner's own option, passed to every builder.
+        if name not in ("views", "max_features", "quiet", "image_scale")
     }
     if not metric:
         spacing = median_camera_spacing([view.pose for view in views])

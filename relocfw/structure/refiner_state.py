@@ -23,7 +23,9 @@ from relocfw.structure.map_state import checked_tensor
 KEYFRAMES = ("descriptor", "pose", "track")
 # The integer options a state keeps, with their least values, and the numbers.
 STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4}
-STATE_NUMBERS = ("ratio", "max_error_px")
+STATE_NUMBERS = ("ratio", "max_error_px", "image_scale")
+# Options kept as 0 / 1.
+STATE_FLAGS = ("match_points_only",)
 STATE_LABEL = "refine=features state"
 
 
@@ -40,6 +42,7 @@ def options_state(options: dict) -> dict[str, torch.Tensor]:
     state = {"keyframes": torch.tensor(KEYFRAMES.index(options["keyframes"]))}
     state |= {key: torch.tensor(int(options[key])) for key in STATE_INTEGERS}
     state |= {key: torch.tensor(float(options[key]), dtype=torch.float64) for key in STATE_NUMBERS}
+    state |= {key: torch.tensor(int(bool(options[key]))) for key in STATE_FLAGS if key in options}
     return state
 
 
@@ -64,9 +67,16 @@ def stored_options(state: dict[str, torch.Tensor]) -> dict:
         for key in STATE_NUMBERS:
             if key in state:
                 value = float(checked_tensor(state, key, torch.float64, STATE_LABEL))
+                at_most_one = key in ("ratio", "image_scale")
                 options[key] = positive_number(
-                    f"refine.{key}", value, **({"most": 1.0} if key == "ratio" else {})
+                    f"refine.{key}", value, **({"most": 1.0} if at_most_one else {})
                 )
+        for key in STATE_FLAGS:
+            if key in state:
+                flag = int(checked_tensor(state, key, torch.int64, STATE_LABEL))
+                if flag not in (0, 1):
+                    raise DataError(f"{STATE_LABEL}: {key} must be 0 or 1, got {flag}")
+                options[key] = bool(flag)
     except (ConfigError, TypeError, ValueError) as error:
         raise DataError(f"{STATE_LABEL}: {error}") from None
     return options

@@ -54,7 +54,12 @@ from relocfw.core.progress import Progress
 from relocfw.core.values import Pose
 from relocfw.core.version import VERSION
 from relocfw.data.depth import check_depth_range, read_depth
-from relocfw.structure.features import SIFT_DIMENSIONS, LocalFeatures, extract_rootsift
+from relocfw.structure.features import (
+    SIFT_DIMENSIONS,
+    LocalFeatures,
+    checked_image_scale,
+    extract_rootsift,
+)
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
 from relocfw.structure.matching import checked_ratio, match_against_views
@@ -511,7 +516,10 @@ def depth_of_view(view: MapView) -> tuple[np.ndarray | None, str]:
 
 
 def build_from_depth(
-    views: Sequence[MapView], max_features: int = 1024, quiet: bool = False
+    views: Sequence[MapView],
+    max_features: int = 1024,
+    quiet: bool = False,
+    image_scale: float = 1.0,
 ) -> StructureMap:
     """The structure of RGB-D map images: RootSIFT keypoints lifted with their depth.
 
@@ -535,6 +543,8 @@ def build_from_depth(
         views: the map images (M of them), each with pose, camera and depth_path.
         max_features: the most keypoints per image (>= 1), strongest first.
         quiet: show no progress bar.
+        image_scale: the share of each side SIFT runs at, in (0, 1]
+            (features.extract_rootsift; keypoints stay in the image's pixels).
 
     Returns:
         StructureMap with source "depth"; descriptors on the stored uint8 grid.
@@ -547,11 +557,12 @@ def build_from_depth(
     """
     checked_views(views)
     max_features = integer_at_least("max_features", max_features, 1)
+    image_scale = checked_image_scale(image_scale)
     features, points, poses, cameras, names, skipped = [], [], [], [], [], []
     progress = Progress(len(views), "map structure from depth", quiet=quiet)
     for number in range(len(views)):
         view = checked_view(number, views[number])
-        found = on_descriptor_grid(extract_rootsift(view.image, max_features))
+        found = on_descriptor_grid(extract_rootsift(view.image, max_features, image_scale))
         depth, reason = depth_of_view(view)
         if depth is None:
             lifted = np.full((len(found), 3), np.nan, dtype=np.float32)
@@ -687,6 +698,7 @@ def build_by_two_view_triangulation(
     max_reprojection_px: float = 4.0,
     ratio: float = 0.8,
     quiet: bool = False,
+    image_scale: float = 1.0,
 ) -> StructureMap:
     """The structure of RGB map images of known pose, by two-view triangulation (the
     builder before multi-view tracks; `build_by_triangulation(method="two_view")`).
@@ -723,6 +735,7 @@ def build_by_two_view_triangulation(
             in either image, in pixels.
         ratio: Lowe's ratio for the matches, in (0, 1].
         quiet: show no progress bar.
+        image_scale: the share of each side SIFT runs at, in (0, 1].
 
     Returns:
         StructureMap with source "triangulated"; `skipped_views` lists images with
@@ -742,7 +755,7 @@ def build_by_two_view_triangulation(
         raise ConfigError(f"max_reprojection_px must be above 0, got {max_reprojection_px!r}")
     count = len(views)
     progress = Progress(2 * count, "map structure by triangulation", quiet=quiet)
-    features, poses, cameras, names = features_of_views(views, max_features, progress)
+    features, poses, cameras, names = features_of_views(views, max_features, progress, image_scale)
     chosen = triangulation_partners(
         poses, partners, max_partner_distance_m, min_baseline_m, max_axis_angle_deg
     )
@@ -788,14 +801,16 @@ def build_by_two_view_triangulation(
 
 
 def features_of_views(
-    views: Sequence[MapView], max_features: int, progress: Progress
+    views: Sequence[MapView], max_features: int, progress: Progress, image_scale: float = 1.0
 ) -> tuple[list[LocalFeatures], list[Pose], list[PinholeCamera], list[str]]:
-    """Each view read once, in order: its RootSIFT features (on the stored grid),
-    pose, camera and name; one progress step per view."""
+    """Each view read once, in order: its RootSIFT features (on the stored grid, SIFT
+    at `image_scale`), pose, camera and name; one progress step per view."""
+    image_scale = checked_image_scale(image_scale)
     features, poses, cameras, names = [], [], [], []
     for number in range(len(views)):
         view = checked_view(number, views[number])
-        features.append(on_descriptor_grid(extract_rootsift(view.image, max_features)))
+        found = extract_rootsift(view.image, max_features, image_scale)
+        features.append(on_descriptor_grid(found))
         poses.append(view.pose)
         cameras.append(view.camera)
         names.append(view.name)
@@ -807,6 +822,7 @@ def build_by_track_triangulation(
     views: Sequence[MapView],
     max_features: int = 1024,
     quiet: bool = False,
+    image_scale: float = 1.0,
     **settings: Any,
 ) -> StructureMap:
     """The structure of RGB map images of known pose, from multi-view tracks.
@@ -820,6 +836,7 @@ def build_by_track_triangulation(
         views: the map images (M), each with pose and camera (depth is not read).
         max_features: the most keypoints per image (>= 1).
         quiet: show no progress bar.
+        image_scale: the share of each side SIFT runs at, in (0, 1].
         **settings: TrackSettings fields (partners, min_partner_angle_deg,
             max_partner_angle_deg, epipolar_px, max_reprojection_px, min_views,
             min_angle_deg, ratio); the rest keep their defaults.
@@ -839,7 +856,7 @@ def build_by_track_triangulation(
     checked = TrackSettings.of(settings, prefix="triangulation")
     count = len(views)
     progress = Progress(count + 1, "map structure by tracks", quiet=quiet)
-    features, poses, cameras, names = features_of_views(views, max_features, progress)
+    features, poses, cameras, names = features_of_views(views, max_features, progress, image_scale)
     points, partners = build_track_points(features, poses, cameras, checked)
     progress.advance(suffix="tracks")
     progress.close()
@@ -866,6 +883,7 @@ def build_by_triangulation(
     max_features: int = 1024,
     method: str = "tracks",
     quiet: bool = False,
+    image_scale: float = 1.0,
     **settings: Any,
 ) -> StructureMap:
     """The structure of RGB map images of known pose: multi-view tracks
@@ -878,13 +896,17 @@ def build_by_triangulation(
             is not the chosen builder's (naming it).
     """
     if method == "tracks":
-        return build_by_track_triangulation(views, max_features, quiet=quiet, **settings)
+        return build_by_track_triangulation(
+            views, max_features, quiet=quiet, image_scale=image_scale, **settings
+        )
     if method == "two_view":
         allowed = set(inspect.signature(build_by_two_view_triangulation).parameters)
         for key in settings:
-            if key not in allowed or key in ("views", "max_features", "quiet"):
+            if key not in allowed or key in ("views", "max_features", "quiet", "image_scale"):
                 raise ConfigError(f"triangulation.{key} is not a setting of method two_view")
-        return build_by_two_view_triangulation(views, max_features, quiet=quiet, **settings)
+        return build_by_two_view_triangulation(
+            views, max_features, quiet=quiet, image_scale=image_scale, **settings
+        )
     choices = ", ".join(TRIANGULATION_METHODS)
     raise ConfigError(f"triangulation.method must be one of {choices}, got {method!r}")
 

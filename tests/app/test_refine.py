@@ -106,3 +106,35 @@ def test_refine_retrieval_runs_with_k_means_and_is_stored_in_the_model_file(tiny
     for answer, written in zip(answers, rows, strict=True):
         position = [float(written[f"est_{axis}"]) for axis in "xyz"]
         assert np.allclose(answer.pose.position, position, atol=2e-6)
+
+
+def test_structure_rows_take_turns_and_report_the_whole_query(tmp_path):
+    pytest.importorskip("poselib")
+    run_dir = tmp_path / "compare"
+    folder = tmp_path / "mine" / "methods"
+    folder.mkdir(parents=True)
+    (folder / "turns.yaml").write_text(
+        "# @package compare.methods\n"
+        "PoseNet: [crop=centre]\n"
+        "Depth: [crop=centre, refine=features]\n"
+        "Depth half: [crop=centre, refine=features, refine.image_scale=0.5]\n"
+    )
+    rows = ["methods=turns", f"hydra.searchpath=[file://{tmp_path / 'mine'}]"]
+    args = [*TINY_MODEL, *SCENE, "task=compare", *rows, "compare.crop_seeds=null"]
+    result = relocfw([*args, "compare.round_robin=true", f"hydra.run.dir={run_dir}"], tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "synthetic: 3 methods take turns, query by query" in result.stdout
+    summary = {s["method"]: s for s in json.loads((run_dir / "summary_synthetic.json").read_text())}
+    assert summary["Depth"]["median_position_m"] < 0.1, summary["Depth"]
+    for name in ("Depth", "Depth half"):
+        row = summary[name]
+        parts = [row[f"refine_median_ms_{p}"] for p in ("retrieval", "features", "matching")]
+        assert 0 < row["median_ms_network"] < 1000 * row["median_seconds_per_query"]
+        assert sum(parts) < 1000 * row["median_seconds_per_query"]
+    # SIFT on a quarter of the pixels: less extraction time than at full size.
+    assert (
+        summary["Depth half"]["refine_median_ms_features"]
+        < summary["Depth"]["refine_median_ms_features"]
+    )
+    bad = relocfw_here([*args, "compare.round_robin=yes"], tmp_path)
+    assert bad.returncode != 0 and "compare.round_robin must be true or false" in bad.stderr

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import torch
 
-from relocfw import DataError, MapImage, Pose
+from relocfw import ConfigError, DataError, MapImage, Pose
 from relocfw.core.camera import SEVENSCENES_DEFAULT
 from relocfw.core.refinement import RefineQuery
 from relocfw.plugins import features_refiner
@@ -263,3 +263,53 @@ def test_a_bogus_keyframes_choice_lists_track(tmp_path):
         "got 'bogus'"
     )
     assert not (tmp_path / "cache" / "checkpoints").exists()  # refused before training
+
+
+def test_image_scale_and_match_points_only_are_kept_in_the_state(small_map):
+    refiner = FeaturesRefiner(
+        count=2, max_features=256, image_scale=0.5, match_points_only=False, quiet=True
+    )
+    refiner.fit(small_map, np.asarray(DESCRIPTORS))
+    loaded = FeaturesRefiner(image_scale=1.0, match_points_only=True)
+    loaded.load_state(refiner.state())
+    assert (loaded.image_scale, loaded.match_points_only) == (0.5, False)
+    assert len(loaded.match_index.codes) == sum(len(f) for f in loaded.structure.features)
+
+
+def test_a_state_from_before_the_options_answers_as_it_did(small_map):
+    # Files written before image_scale and match_points_only: SIFT at full size and
+    # matching against every keypoint, whatever the loading refiner's defaults.
+    state = FeaturesRefiner(count=2, max_features=256, quiet=True)
+    state.fit(small_map, np.asarray(DESCRIPTORS))
+    older = {
+        k: v for k, v in state.state().items() if k not in ("image_scale", "match_points_only")
+    }
+    loaded = FeaturesRefiner(image_scale=0.5, match_points_only=True)
+    loaded.load_state(older)
+    assert (loaded.image_scale, loaded.match_points_only) == (1.0, False)
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("image_scale", torch.tensor(1.5, dtype=torch.float64), "image_scale"),
+        ("match_points_only", torch.tensor(2), "match_points_only must be 0 or 1"),
+    ],
+)
+def test_a_forged_scale_or_flag_is_one_data_error(small_map, key, value, message):
+    state = fitted_state(small_map)
+    state[key] = value
+    with pytest.raises(DataError, match=message):
+        FeaturesRefiner().load_state(state)
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"image_scale": 2.0}, "refine.image_scale must be in"),
+        ({"match_points_only": "yes"}, "refine.match_points_only must be true or false"),
+    ],
+)
+def test_impossible_speed_options_are_named(options, message):
+    with pytest.raises(ConfigError, match=message):
+        FeaturesRefiner(**options)

@@ -23,7 +23,7 @@ from omegaconf import DictConfig, OmegaConf
 from relocfw.app.engines import on_engine, wanted_engine
 from relocfw.app.hydra_errors import COMPOSITION_ERRORS, one_line
 from relocfw.app.methods import build, build_method, scene_name
-from relocfw.app.results import run_method, safe_name, write_results
+from relocfw.app.results import fit_method, run_method, safe_name, write_results
 from relocfw.app.spellings import rewrite
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.training_runs import prepare_model
@@ -49,6 +49,7 @@ from relocfw.report.evaluation import (
     MethodResult,
     constant_answer,
     evaluate,
+    evaluate_round_robin,
     uncertainty_of,
 )
 from relocfw.report.seed_comparison import SeedResults, seed_comparison, seed_footnote, seed_rows
@@ -141,11 +142,11 @@ def plan(
 
     Composed before any work, so that a typo in any row fails before hours of training.
     """
-    base = [
-        o
-        for o in HydraConfig.get().overrides.task
-        if not o.lstrip("~+").startswith(("task=", "compare."))
-    ]
+    overrides = HydraConfig.get().overrides
+    base = [o for o in overrides.task if not o.lstrip("~+").startswith(("task=", "compare."))]
+    # A user's own methods file is found through hydra.searchpath, which Hydra keeps
+    # apart from the task's overrides: each row must be composed with it too.
+    base += [o for o in overrides.hydra if o.startswith("hydra.searchpath=")]
     plans, rows = {}, {}
     for seed in seeds:
         for scene in scenes:
@@ -196,6 +197,9 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     seeds = training_seeds(cfg)
     crop_seeds = seed_list(cfg, "crop_seeds") or []
     quiet = bool(cfg.quiet)
+    round_robin = cfg.compare.get("round_robin", False)
+    if not isinstance(round_robin, bool):
+        raise ConfigError(f"compare.round_robin must be true or false, got {round_robin!r}")
     plans, rows = plan(methods, scenes, seeds)
     one_calibration(plans)
     for (_, _, name), (method_cfg, _) in plans.items():
@@ -226,6 +230,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
                 print(f"\n== {label}: training seed {seed} ==")
             results[seed][label], seed_runs[seed][label] = {}, {}
             maps[seed][label] = None
+            fitted: dict[str, tuple] = {}
             for name in methods:
                 method_cfg, choices = plans[seed, scene, name]
                 method = build_method(method_cfg, choices, label=rows[name])
@@ -238,10 +243,22 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
                 relocalizer = on_engine(
                     method_cfg, method.relocalizer(device), checkpoint, device, train[1]
                 )
+                if round_robin:
+                    # Every row fitted first; the queries then take turns (below).
+                    features = fit_method(rows[name], relocalizer, train, quiet, calibration)
+                    fitted[name] = (method_cfg, choices, method, relocalizer, features)
+                    continue
                 result, features = run_method(
                     rows[name], relocalizer, train, test, quiet, calibration
                 )
+                fitted[name] = (method_cfg, choices, method, relocalizer, features)
                 results[seed][label][rows[name]] = result
+            if round_robin:
+                turns = {rows[n]: entry[3] for n, entry in fitted.items()}
+                print(f"{label}: {len(turns)} methods take turns, query by query")
+                results[seed][label] = evaluate_round_robin(turns, *test, quiet=quiet)
+            for name, (method_cfg, choices, method, relocalizer, features) in fitted.items():
+                result = results[seed][label][rows[name]]
                 if "seed" in method_cfg.crop and len(crop_seeds) > 1:
                     seed_runs[seed][label][rows[name]] = rerun_crop_seeds(
                         method_cfg, choices, relocalizer, result, test, crop_seeds, quiet
