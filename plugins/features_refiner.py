@@ -72,6 +72,7 @@ from relocfw.structure import (
     localize_against,
     structure_key,
 )
+from relocfw.structure.absolute_pose import POSELIB_MIN_ITERATIONS
 from relocfw.structure.colmap_structure import checked_radius
 from relocfw.structure.features import LocalFeatures, checked_image_scale
 from relocfw.structure.map_state import map_of_state, map_state
@@ -136,6 +137,8 @@ class FeaturesRefiner(PoseRefiner):
             (0, 1] (0.5: a quarter of the pixels, about 4x faster extraction).
         match_points_only: match queries only against map keypoints that have a 3-D
             point (relocfw.structure.match_index); false: against every keypoint.
+        ransac_min_iterations: the solve's fewest RANSAC rounds (PoseLib's 1000 by
+            default; more stop by its confidence rule).
     """
 
     def __init__(
@@ -154,6 +157,7 @@ class FeaturesRefiner(PoseRefiner):
         triangulation: Mapping[str, Any] | None = None,
         image_scale: float = 1.0,
         match_points_only: bool = True,
+        ransac_min_iterations: int = POSELIB_MIN_ITERATIONS,
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -185,6 +189,9 @@ class FeaturesRefiner(PoseRefiner):
                 f"refine.match_points_only must be true or false, got {match_points_only!r}"
             )
         self.match_points_only = match_points_only
+        self.ransac_min_iterations = integer_at_least(
+            "refine.ransac_min_iterations", ransac_min_iterations, 1
+        )
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
 
     def source_for(self, frames: Sequence[object]) -> str:
@@ -352,6 +359,7 @@ class FeaturesRefiner(PoseRefiner):
         # SIFT ran at full size; that is how they answer.
         options.setdefault("image_scale", 1.0)
         options.setdefault("match_points_only", False)
+        options.setdefault("ransac_min_iterations", POSELIB_MIN_ITERATIONS)
         for key, value in options.items():
             setattr(self, key, value)
         self.structure = structure
@@ -435,6 +443,7 @@ class FeaturesRefiner(PoseRefiner):
             query_features=features,
             image_scale=self.image_scale,
             match_index=self.match_index,
+            min_iterations=self.ransac_min_iterations,
         )
         seconds = {"retrieval": retrieval, **answer.seconds}
         if not answer.success:

@@ -22,6 +22,11 @@ from relocfw.core.values import Pose
 
 MINIMUM_CORRESPONDENCES = 4  # P3P's three plus one to choose among its solutions
 RANSAC_SEED = 0  # fixed: the same correspondences give the same pose on every run
+# PoseLib's own least number of RANSAC rounds. Past it, rounds stop once a pose with
+# the inliers found so far would have been drawn with probability 0.9999; with many
+# inliers that takes far fewer rounds, so the least number is most of the solve's time
+# (about 5 ms of 6 for 300 clean correspondences).
+POSELIB_MIN_ITERATIONS = 1000
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,7 @@ def solve_absolute_pose(
     camera: PinholeCamera,
     max_error_px: float = 8.0,
     min_inliers: int = 12,
+    min_iterations: int = POSELIB_MIN_ITERATIONS,
 ) -> AbsolutePose:
     """The camera-to-world pose that projects `points_3d` onto `points_2d`.
 
@@ -87,6 +93,8 @@ def solve_absolute_pose(
         max_error_px: the reprojection error in pixels under which a correspondence is
             an inlier (> 0).
         min_inliers: the fewest inliers a pose needs to count as found (>= 4).
+        min_iterations: the fewest RANSAC rounds (>= 1); more rounds stop by
+            PoseLib's confidence rule (see POSELIB_MIN_ITERATIONS).
 
     Returns:
         AbsolutePose. A solve that fails (fewer than 4 correspondences, no pose, fewer
@@ -102,6 +110,7 @@ def solve_absolute_pose(
     image, world = checked_correspondences(points_2d, points_3d)
     max_error = positive_number("max_error_px", max_error_px)
     min_inliers = integer_at_least("min_inliers", min_inliers, MINIMUM_CORRESPONDENCES)
+    min_iterations = integer_at_least("min_iterations", min_iterations, 1)
     try:
         import poselib
     except ImportError:
@@ -117,7 +126,12 @@ def solve_absolute_pose(
         "height": camera.height,
         "params": [camera.fx, camera.fy, camera.cx, camera.cy],
     }
-    ransac = {"max_reproj_error": max_error, "seed": RANSAC_SEED}
+    ransac = {
+        "max_reproj_error": max_error,
+        "seed": RANSAC_SEED,
+        "min_iterations": min_iterations,
+        "max_iterations": max(min_iterations, 100_000),  # PoseLib's own most
+    }
     world_to_camera, info = poselib.estimate_absolute_pose(image, world, camera_model, ransac, {})
     inliers = int(info.get("num_inliers", 0))
     q = np.asarray(world_to_camera.q, dtype=np.float64)

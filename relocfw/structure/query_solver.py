@@ -24,7 +24,7 @@ from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import check_rgb_image
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.values import Pose
-from relocfw.structure.absolute_pose import solve_absolute_pose
+from relocfw.structure.absolute_pose import POSELIB_MIN_ITERATIONS, solve_absolute_pose
 from relocfw.structure.features import LocalFeatures, checked_image_scale, extract_rootsift
 from relocfw.structure.match_index import MatchIndex
 from relocfw.structure.matching import (
@@ -148,6 +148,7 @@ def localize_against(
     query_features: LocalFeatures | None = None,
     image_scale: float = 1.0,
     match_index: MatchIndex | None = None,
+    min_iterations: int = POSELIB_MIN_ITERATIONS,
 ) -> StructureAnswer:
     """The pose of a query image from its matches with a few map images.
 
@@ -171,6 +172,7 @@ def localize_against(
             its stacked descriptors instead of stacking the keyframes' per query,
             and only the keypoints it holds (with a 3-D point, by default) are
             candidates. None: the keyframes' descriptors, every keypoint.
+        min_iterations: the solve's fewest RANSAC rounds (absolute_pose).
 
     Returns:
         StructureAnswer. Zero correspondences (a blank or unrelated image, keyframes
@@ -222,7 +224,7 @@ def localize_against(
     else:
         points_2d, points_3d = match_index.correspondences(query_features, chosen, ratio)
     matching_done = time.perf_counter()
-    solved = solve_absolute_pose(points_2d, points_3d, camera, bound, min_inliers)
+    solved = solve_absolute_pose(points_2d, points_3d, camera, bound, min_inliers, min_iterations)
     solve_done = time.perf_counter()
     return StructureAnswer(
         pose=solved.pose,

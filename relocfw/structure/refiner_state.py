@@ -22,7 +22,7 @@ from relocfw.structure.map_state import checked_tensor
 # their codes: 0 descriptor, 1 pose).
 KEYFRAMES = ("descriptor", "pose", "track")
 # The integer options a state keeps, with their least values, and the numbers.
-STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4}
+STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4, "ransac_min_iterations": 1}
 STATE_NUMBERS = ("ratio", "max_error_px", "image_scale")
 # Options kept as 0 / 1.
 STATE_FLAGS = ("match_points_only",)

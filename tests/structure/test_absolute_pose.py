@@ -41,6 +41,18 @@ def test_recovers_a_known_pose_from_noisy_matches_with_outliers(seed):
     assert (~wrong).sum() - 5 <= result.inliers <= (~wrong).sum() + 5
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fewer_least_rounds_find_the_same_pose_when_inliers_abound(seed):
+    # 70% inliers: the confidence rule stops after a few hundred rounds at most, so
+    # a least number of 50 still finds the pose (and its refinement the same one).
+    truth, pixels, world, _ = noisy_problem(seed)
+    many = solve_absolute_pose(pixels, world, CAMERA, max_error_px=4.0)
+    few = solve_absolute_pose(pixels, world, CAMERA, max_error_px=4.0, min_iterations=50)
+    assert few.success and abs(few.inliers - many.inliers) <= 2
+    assert np.linalg.norm(few.pose.position - many.pose.position) < 0.002
+    assert np.linalg.norm(few.pose.position - truth.position) < 0.01
+
+
 def test_exact_correspondences_give_the_exact_pose():
     rng = np.random.default_rng(7)
     truth = random_pose(rng)
@@ -88,7 +100,11 @@ def test_malformed_correspondences_raise_one_data_error(pixels, points, message)
 
 @pytest.mark.parametrize(
     "options, name",
-    [({"max_error_px": 0.0}, "max_error_px"), ({"min_inliers": 3}, "min_inliers")],
+    [
+        ({"max_error_px": 0.0}, "max_error_px"),
+        ({"min_inliers": 3}, "min_inliers"),
+        ({"min_iterations": 0}, "min_iterations"),
+    ],
 )
 def test_impossible_options_raise_a_config_error_naming_them(options, name):
     truth, pixels, world, _ = noisy_problem(6, count=20)

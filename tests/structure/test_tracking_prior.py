@@ -267,12 +267,18 @@ def test_a_bogus_keyframes_choice_lists_track(tmp_path):
 
 def test_image_scale_and_match_points_only_are_kept_in_the_state(small_map):
     refiner = FeaturesRefiner(
-        count=2, max_features=256, image_scale=0.5, match_points_only=False, quiet=True
+        count=2,
+        max_features=256,
+        image_scale=0.5,
+        match_points_only=False,
+        ransac_min_iterations=64,
+        quiet=True,
     )
     refiner.fit(small_map, np.asarray(DESCRIPTORS))
     loaded = FeaturesRefiner(image_scale=1.0, match_points_only=True)
     loaded.load_state(refiner.state())
     assert (loaded.image_scale, loaded.match_points_only) == (0.5, False)
+    assert loaded.ransac_min_iterations == 64
     assert len(loaded.match_index.codes) == sum(len(f) for f in loaded.structure.features)
 
 
@@ -308,6 +314,7 @@ def test_a_forged_scale_or_flag_is_one_data_error(small_map, key, value, message
     [
         ({"image_scale": 2.0}, "refine.image_scale must be in"),
         ({"match_points_only": "yes"}, "refine.match_points_only must be true or false"),
+        ({"ransac_min_iterations": 0}, "refine.ransac_min_iterations"),
     ],
 )
 def test_impossible_speed_options_are_named(options, message):
