@@ -9,6 +9,7 @@ flight for exactly as long as they need.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import queue
 import signal
@@ -114,10 +115,13 @@ def start_server(command: list[str], folder: Path) -> Server:
             text=True,
             env=env,
             cwd=folder,
+            # Its own process group: stopping it stops its worker processes too
+            # (serve.workers > 1), which would otherwise outlive the test.
+            start_new_session=True,
         )
     line = first_line(process, START_SECONDS)
     if not line.startswith("relocfw serve: http://"):
-        process.kill()
+        stop(process)
         raise AssertionError(f"the service did not start: {line!r}\n{log.read_text()}")
     url = line.split()[2]
     for _ in range(200):
@@ -126,8 +130,20 @@ def start_server(command: list[str], folder: Path) -> Server:
                 return Server(process, url, log)
         except httpx.TransportError:
             time.sleep(0.05)
-    process.kill()
+    stop(process)
     raise AssertionError(f"the service never answered /v1/health:\n{log.read_text()}")
+
+
+def stop(process: subprocess.Popen) -> None:
+    """Stop a service as a user would (SIGTERM: it stops its workers), and whatever
+    of its process group is still there after 10 s by SIGKILL."""
+    if process.poll() is None:
+        process.terminate()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(timeout=10)
+    with contextlib.suppress(ProcessLookupError, PermissionError):
+        os.killpg(process.pid, signal.SIGKILL)  # workers left behind, if any
+    process.wait(timeout=30)
 
 
 def serve_command(model: Path, *overrides: str) -> list[str]:
@@ -146,9 +162,7 @@ def running(command: list[str], folder: Path) -> Iterator[Server]:
     try:
         yield server
     finally:
-        if server.process.poll() is None:
-            server.process.kill()
-            server.process.wait(timeout=30)
+        stop(server.process)
         server.process.stdout.close()
 
 
