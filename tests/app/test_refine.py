@@ -116,7 +116,7 @@ def test_structure_rows_take_turns_and_report_the_whole_query(tmp_path):
     (folder / "turns.yaml").write_text(
         "# @package compare.methods\n"
         "PoseNet: [crop=centre]\n"
-        "Depth: [crop=centre, refine=features]\n"
+        "Depth: [crop=centre, refine=features, refine.image_scale=1.0]\n"
         "Depth half: [crop=centre, refine=features, refine.image_scale=0.5]\n"
     )
     rows = ["methods=turns", f"hydra.searchpath=[file://{tmp_path / 'mine'}]"]
