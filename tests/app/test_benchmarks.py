@@ -319,3 +319,24 @@ def test_selection_rules_answers_one_synthetic_scene_for_every_seed(tmp_path, mo
     monkeypatch.syspath_prepend(str(BENCHMARKS))
     selection_rules = importlib.import_module("selection_rules")
     assert selection_rules.dataset_overrides("synthetic", "test", tmp_path) == ["dataset.seed=0"]
+
+
+@pytest.mark.skipif(not REDKITCHEN.is_dir(), reason=f"{REDKITCHEN} is absent")
+def test_matching_precision(tmp_path):
+    report = run_script(
+        "matching_precision.py",
+        tmp_path / "p.json",
+        "--data",
+        str(REDKITCHEN),
+        "--queries",
+        "2",
+        "--keyframes",
+        "3",
+        "--repeats",
+        "1",
+        "--threads",
+        "1",
+    )
+    assert report["queries"] == 2 and report["float32_matches"] > 50
+    assert 0.9 < report["bfloat16_keeps_share"] <= 1.0
+    assert all(ms > 0 for ms in report["median_ms"].values())
