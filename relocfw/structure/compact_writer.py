@@ -131,7 +131,8 @@ class CompactMapWriter:
             raise DataError(
                 f"image {name!r}: points must be [{count}, 3], got {list(points.shape)}"
             )
-        stored = points.astype(self.point_dtype)
+        with np.errstate(over="ignore"):  # an overflow is the check below's to name
+            stored = points.astype(self.point_dtype)
         if not (np.isfinite(stored).all() and (stored[:, 2] > 0).all()):
             raise DataError(
                 f"image {name!r}: a point is not finite or not in front of the camera as "
