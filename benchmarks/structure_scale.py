@@ -308,7 +308,17 @@ def query_totals(retrieval: list[float], seconds: list[dict]) -> dict:
         r + s["open"] + s["cold_fetch"] + m
         for r, s, m in zip(retrieval, seconds, local, strict=True)
     ]
-    return {"warm": 1000 * float(np.median(warm)), "cold": 1000 * float(np.median(cold))}
+    # What a map's size can change: all but the query's own SIFT extraction, which
+    # on a shared machine varies more than the rest of the query.
+    mapped = [
+        r + s["warm_fetch"] + s["matching"] + s["solve"]
+        for r, s in zip(retrieval, seconds, strict=True)
+    ]
+    return {
+        "warm": 1000 * float(np.median(warm)),
+        "cold": 1000 * float(np.median(cold)),
+        "warm_without_query_features": 1000 * float(np.median(mapped)),
+    }
 
 
 def scale_row(size: int, inputs: dict, report: dict, folder: Path, args) -> dict:
@@ -389,8 +399,9 @@ def query_method(args: argparse.Namespace) -> str:
 
 def done_when(rows: list[dict]) -> dict:
     """The issue's two targets, between the smallest and the largest size: query ms
-    growth for each retrieval method (warm and cold reads), and disk bytes per image.
-    `query_growth_met` is the query stage's own method's (the first faiss kind)."""
+    growth for each retrieval method (warm and cold reads, and warm without the query's
+    SIFT), and disk bytes per image. `query_growth_met` is the query stage's own
+    method's (the first faiss kind), warm and cold."""
     first, last = rows[0], rows[-1]
     growth = {
         method: {
@@ -405,7 +416,8 @@ def done_when(rows: list[dict]) -> dict:
         "to_images": last["map_images"],
         "query_retrieval": last["query_retrieval"],
         "query_ms_growth": growth,
-        "query_growth_met": all(g < TARGET_QUERY_GROWTH for g in chosen.values()),
+        "query_growth_met": chosen["warm"] < TARGET_QUERY_GROWTH
+        and chosen["cold"] < TARGET_QUERY_GROWTH,
         "disk_bytes_per_image": last["disk_bytes_per_image"],
         "bytes_met": last["disk_bytes_per_image"] <= TARGET_BYTES_PER_IMAGE,
     }

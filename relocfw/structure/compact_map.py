@@ -130,21 +130,28 @@ class CompactMap:
             f"{self.codec.kind} {self.codec.code_bytes} B, {self.points.dtype})"
         )
 
-    def rows(self, index: int) -> slice:
-        """Image `index`'s rows of the flat arrays."""
+    def checked(self, index: int) -> int:
+        """`index` when it is an image of the map (numpy would read -1 as the last)."""
+        if isinstance(index, bool) or not isinstance(index, int | np.integer):
+            raise DataError(f"an image index must be an integer, got {index!r}")
         if not 0 <= index < len(self):
             raise DataError(f"image {index} is not in the map (0 .. {len(self) - 1})")
+        return int(index)
+
+    def rows(self, index: int) -> slice:
+        """Image `index`'s rows of the flat arrays."""
+        index = self.checked(index)
         return slice(int(self.offsets[index]), int(self.offsets[index + 1]))
 
     def name(self, index: int) -> str:
-        return bytes(self.names[index]).decode("utf-8")
+        return bytes(self.names[self.checked(index)]).decode("utf-8")
 
     def pose(self, index: int) -> Pose:
-        row = self.poses[index]
+        row = self.poses[self.checked(index)]
         return Pose(row[:3], row[3:])
 
     def camera(self, index: int) -> PinholeCamera:
-        fx, fy, cx, cy, width, height = self.cameras[index].tolist()
+        fx, fy, cx, cy, width, height = self.cameras[self.checked(index)].tolist()
         return PinholeCamera(fx, fy, cx, cy, int(width), int(height))
 
     def camera_points(self, index: int) -> np.ndarray:
@@ -172,12 +179,12 @@ class CompactMap:
 
     def world_points(self, index: int) -> np.ndarray:
         """[N, 3] float32 world points of image `index`."""
-        return in_world(self.camera_points(index), self.poses[index])
+        return in_world(self.camera_points(index), self.poses[self.checked(index)])
 
     def keyframe_map(self, keyframes: Sequence[int]) -> StructureMap:
         """A StructureMap of just these images, in this order (row k: keyframes[k]):
         what localize_against needs of a query's keyframes."""
-        chosen = [int(i) for i in keyframes]
+        chosen = [self.checked(i) for i in keyframes]
         features, points = [], []
         for index in chosen:
             camera_points = self.camera_points(index)

@@ -93,6 +93,8 @@ def test_a_keyframe_map_holds_the_chosen_images_in_order(depth_structure, tmp_pa
     assert np.isfinite(small.points[0]).all()
     with pytest.raises(DataError, match="image 2 is not in the map"):
         compact.keyframe_map([2])
+    with pytest.raises(DataError, match="image -1 is not in the map"):
+        compact.pose(-1)
 
 
 def test_the_grid_codec_is_the_builders_grid(depth_structure):
