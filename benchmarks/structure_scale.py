@@ -8,7 +8,7 @@ Method.
    of --workers (one thread per worker; the frames in small tasks, the parts merged in
    order). Each mode's map must equal the first's (`same_map_as_first`). Build time at
    a larger size is extrapolated from the images per second (every image is built
-   alone, so the cost is linear): rows say `build_extrapolated`.
+   alone, so the cost is linear): such rows list "build" under `extrapolated`.
 2. Today's layout at the built size, measured: the StructureMap's arrays in memory
    (float32 descriptors), its npz file, StructureMap.save and .load. Above it these
    are extrapolated per image (a 10^5 map would need about 40 GB of memory).
@@ -35,7 +35,9 @@ Method.
    the page cache (posix_fadvise), the map opened, the keyframes read from disk
    (cold) and again (warm), then localize_against on them (RootSIFT of the query,
    matching, PoseLib). Errors against the moved ground truth: a wrong copy is metres
-   off, so the errors show the answers stay right.
+   off, so the errors show the answers stay right. Totals per retrieval method:
+   that method's retrieval ms plus the same reads and solves; also without the
+   query's own SIFT extraction, the one part no map size changes.
 The issue's targets (`done_when`): query ms with faiss retrieval grows by less than
 2x from the smallest size to the largest, and at most 20 KB per map image on disk.
 

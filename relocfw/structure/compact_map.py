@@ -39,6 +39,12 @@ Why this shape:
 - Flat arrays with offsets: one file per kind, whole images contiguous, so a
   keyframe is two small reads.
 
+Measured on Red Kitchen (benchmarks/structure_scale.py: 400 training frames at 1024
+features, 30 test queries, the same 10 keyframes each): the StructureMap in memory
+gave a median 2.3 cm with 73% of queries within 5 cm / 5 deg; this layout with the
+uint8 grid 2.3 cm, 73% (81.5 KB per image); with 16-byte product quantisation and
+float16 points 2.3 cm, 77% (13.8 KB per image; 607 points an image).
+
 Opening checks the small arrays fully (offsets, poses, cameras, names) and the large
 ones by shape, dtype and size; reading 10^8 rows to check them would defeat the
 layout, so each image's points are checked when the image is read. Any fault is one
@@ -66,15 +72,8 @@ COMPACT_KIND = "relocfw compact structure map"
 COMPACT_FORMAT = 1
 META_FILE = "map.json"
 POINT_DTYPES = ("float16", "float32")
-# What each array file holds: (dtype, columns after the first axis).
-ARRAY_FILES = {
-    "offsets": (np.int64, ()),
-    "codes": (np.uint8, None),  # [T, B], B from map.json
-    "points": (None, (3,)),  # dtype from map.json
-    "poses": (np.float64, (7,)),
-    "cameras": (np.float64, (6,)),
-    "names": (None, ()),  # bytes of any width
-}
+# The array files of every map (a product quantiser's adds centres.npy).
+ARRAY_FILES = ("offsets", "codes", "points", "poses", "cameras", "names")
 QUATERNION_TOLERANCE = 1e-6
 
 
