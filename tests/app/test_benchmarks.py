@@ -340,3 +340,50 @@ def test_matching_precision(tmp_path):
     assert report["queries"] == 2 and report["float32_matches"] > 50
     assert 0.9 < report["bfloat16_keeps_share"] <= 1.0
     assert all(ms > 0 for ms in report["median_ms"].values())
+
+
+@pytest.mark.skipif(not REDKITCHEN.is_dir(), reason=f"{REDKITCHEN} is absent")
+def test_structure_scale(tmp_path):
+    pytest.importorskip("poselib", reason="relocfw[structure] not installed")
+    pytest.importorskip("faiss", reason="relocfw[faiss] not installed")
+    # 6 real frames built twice (one worker, a pool of two); maps of 6 and 12 images.
+    report = run_script(
+        "structure_scale.py",
+        tmp_path / "s.json",
+        "--data",
+        str(REDKITCHEN),
+        "--sizes",
+        "6",
+        "12",
+        "--build-frames",
+        "6",
+        "--workers",
+        "1",
+        "2",
+        "--opencv-threads",
+        "0",
+        "--queries",
+        "2",
+        "--codes",
+        "128",
+        "--scale-code",
+        "8",
+        "--retrieval-dim",
+        "256",
+        "--faiss-kinds",
+        "flat",
+        "--map-dir",
+        str(tmp_path / "maps"),
+    )
+    assert report["complete"]
+    serial, pool = report["builds"]
+    assert (serial["workers"], pool["workers"]) == (1, 2) and pool["same_map_as_first"]
+    assert [c["code_bytes"] for c in report["codes"]] == [128, 8]
+    small, large = report["rows"]
+    assert (small["map_images"], large["map_images"]) == (6, 12)
+    assert large["copies"] == 2 and large["extrapolated"] == ["build", "in_memory_layout"]
+    # Exact faiss finds today's exhaustive keyframes; copies hold the same rows.
+    assert large["retrieval"]["faiss flat"]["recall_of_exhaustive_keyframes"] == 1.0
+    assert large["disk_bytes_per_image"] < small["disk_bytes_per_image"]  # centres shared
+    assert large["query"]["failures"] == 0
+    assert set(report["done_when"]) >= {"query_growth_met", "bytes_met"}

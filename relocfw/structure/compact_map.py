@@ -1,0 +1,337 @@
+"""A structure map on disk, read image by image: for maps too large for memory.
+
+A StructureMap holds every image's float32 descriptors in memory: about 400 KB per
+Red Kitchen image at 1024 features, 40 GB for a building of 10^5 images, and its npz
+file (about 76 KB per image) must be decompressed whole to be read. A query needs
+only its ten or so keyframes. So the compact layout is a folder of flat, uncompressed
+.npy arrays, opened memory-mapped (np.load(mmap_mode="r")): opening reads a few small
+arrays, and each keyframe's rows come from the disk (or the page cache) when a query
+asks for them.
+
+The folder (written by relocfw.structure.compact_writer):
+
+    map.json       kind, format, source, images M, rows T, the descriptor code and
+                   point dtype, and each array file's size in bytes (written last:
+                   a folder without it is not a map)
+    offsets.npy    [M + 1] int64: image i's rows are offsets[i] .. offsets[i + 1]
+    codes.npy      [T, B] uint8 descriptor codes (relocfw.structure.descriptor_codes:
+                   B = 128 for the uint8 grid, B = S for a product quantiser)
+    points.npy     [T, 3] float16 or float32: each row's 3-D point in its OWN image's
+                   camera frame (x right, y down, z forward, metres)
+    poses.npy      [M, 7] float64 camera-to-world (position, quaternion w first)
+    cameras.npy    [M, 6] float64 (fx, fy, cx, cy, width, height)
+    names.npy      [M] bytes, each name in UTF-8
+    centres.npy    [S, 256, 128 / S] float32, product quantiser only
+
+Why this shape:
+- Only keypoints with a 3-D point are kept. The others give no correspondence; they
+  took part in matching (a keyframe's second-nearest descriptor in Lowe's ratio
+  test, relocfw.structure.map_state), so dropping them changes a few matches, by an
+  accuracy cost the scale benchmark measures (benchmarks/structure_scale.py).
+- No keypoint pixels: a query reads the map's 3-D points, never its pixels. A row's
+  keypoint is given back as its point projected into its image, which for a point
+  lifted from depth is the keypoint itself (to the points' rounding) and for a
+  triangulated point lies within the builder's reprojection bound.
+- Points in the camera frame: their size is the scene depth whatever the world's
+  coordinates (a building's kilometres), so float16 keeps a relative precision of
+  2^-11 (1.5 mm at 3 m, 0.3 px at f = 525); and a copy of an image under another
+  pose keeps its points as they are.
+- Flat arrays with offsets: one file per kind, whole images contiguous, so a
+  keyframe is two small reads.
+
+Measured on Red Kitchen (benchmarks/structure_scale.py: 400 training frames at 1024
+features, 30 test queries, the same 10 keyframes each): the StructureMap in memory
+gave a median 2.3 cm with 73% of queries within 5 cm / 5 deg; this layout with the
+uint8 grid 2.3 cm, 73% (81.5 KB per image); with 16-byte product quantisation and
+float16 points 2.3 cm, 77% (13.8 KB per image; 607 points an image).
+
+Opening checks the small arrays fully (offsets, poses, cameras, names) and the large
+ones by shape, dtype and size; reading 10^8 rows to check them would defeat the
+layout, so each image's points are checked when the image is read. Any fault is one
+DataError naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from relocfw.core.camera import PinholeCamera
+from relocfw.core.errors import DataError
+from relocfw.core.geometry import quaternion_to_matrix
+from relocfw.core.values import Pose
+from relocfw.structure.descriptor_codes import PQ, DescriptorCodec
+from relocfw.structure.features import LocalFeatures
+from relocfw.structure.query_solver import StructureAnswer, checked_keyframes, localize_against
+from relocfw.structure.structure_map import SOURCES, StructureMap
+
+COMPACT_KIND = "relocfw compact structure map"
+COMPACT_FORMAT = 1
+META_FILE = "map.json"
+POINT_DTYPES = ("float16", "float32")
+# The array files of every map (a product quantiser's adds centres.npy).
+ARRAY_FILES = ("offsets", "codes", "points", "poses", "cameras", "names")
+QUATERNION_TOLERANCE = 1e-6
+
+
+class CompactMap:
+    """A compact structure map, opened memory-mapped (`CompactMap.open`).
+
+    Attributes:
+        folder: the map's folder.
+        source: how its points were made (StructureMap.source).
+        codec: the descriptor code (relocfw.structure.descriptor_codes).
+        offsets: [M + 1] int64, in memory.
+        codes, points: the [T, B] and [T, 3] arrays, memory-mapped.
+        poses, cameras: [M, 7] and [M, 6] float64, in memory.
+        names: [M] UTF-8 bytes, in memory.
+    """
+
+    def __init__(self, folder: Path, source: str, codec: DescriptorCodec, arrays: dict) -> None:
+        self.folder = folder
+        self.source = source
+        self.codec = codec
+        self.offsets = arrays["offsets"]
+        self.codes = arrays["codes"]
+        self.points = arrays["points"]
+        self.poses = arrays["poses"]
+        self.cameras = arrays["cameras"]
+        self.names = arrays["names"]
+
+    @classmethod
+    def open(cls, folder: str | Path) -> CompactMap:
+        """The map in `folder`, its large arrays memory-mapped.
+
+        Raises:
+            DataError: naming the file that is missing, truncated, of another kind,
+                format or shape, or holds values a map cannot (offsets that do not
+                rise from 0 to the rows, a pose that is not finite and unit, a
+                camera that is not one).
+        """
+        folder = Path(folder)
+        meta = read_meta(folder)
+        codec = DescriptorCodec(None)
+        if meta["codes"] == PQ:
+            codec = DescriptorCodec(np.array(load_array(folder, "centres", meta)))
+        arrays = {name: load_array(folder, name, meta) for name in ARRAY_FILES}
+        check_arrays(folder, arrays, meta, codec)
+        return cls(folder, meta["source"], codec, arrays)
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def __repr__(self) -> str:
+        return (
+            f"CompactMap({self.folder}, {len(self)} images, {len(self.codes)} points, "
+            f"{self.codec.kind} {self.codec.code_bytes} B, {self.points.dtype})"
+        )
+
+    def checked(self, index: int) -> int:
+        """`index` when it is an image of the map (numpy would read -1 as the last)."""
+        if isinstance(index, bool) or not isinstance(index, int | np.integer):
+            raise DataError(f"an image index must be an integer, got {index!r}")
+        if not 0 <= index < len(self):
+            raise DataError(f"image {index} is not in the map (0 .. {len(self) - 1})")
+        return int(index)
+
+    def rows(self, index: int) -> slice:
+        """Image `index`'s rows of the flat arrays."""
+        index = self.checked(index)
+        return slice(int(self.offsets[index]), int(self.offsets[index + 1]))
+
+    def name(self, index: int) -> str:
+        return bytes(self.names[self.checked(index)]).decode("utf-8")
+
+    def pose(self, index: int) -> Pose:
+        row = self.poses[self.checked(index)]
+        return Pose(row[:3], row[3:])
+
+    def camera(self, index: int) -> PinholeCamera:
+        fx, fy, cx, cy, width, height = self.cameras[self.checked(index)].tolist()
+        return PinholeCamera(fx, fy, cx, cy, int(width), int(height))
+
+    def camera_points(self, index: int) -> np.ndarray:
+        """[N, 3] float32 points of image `index` in its camera frame, read from disk.
+
+        Raises:
+            DataError: naming points.npy when a point is not finite or not in front of
+                the camera (a damaged file).
+        """
+        points = np.asarray(self.points[self.rows(index)], dtype=np.float32)
+        if not (np.isfinite(points).all() and (points[:, 2] > 0).all()):
+            raise DataError(
+                f"{self.folder / 'points.npy'}: image {index} has points that are not "
+                "finite or not in front of its camera (a damaged map)"
+            )
+        return points
+
+    def features(self, index: int) -> LocalFeatures:
+        """Image `index`'s LocalFeatures: decoded descriptors, and its points projected
+        into it as keypoints (see the module's note)."""
+        return LocalFeatures(
+            projected(self.camera_points(index), self.camera(index)),
+            self.codec.decode(np.asarray(self.codes[self.rows(index)])),
+        )
+
+    def world_points(self, index: int) -> np.ndarray:
+        """[N, 3] float32 world points of image `index`."""
+        return in_world(self.camera_points(index), self.poses[self.checked(index)])
+
+    def keyframe_map(self, keyframes: Sequence[int]) -> StructureMap:
+        """A StructureMap of just these images, in this order (row k: keyframes[k]):
+        what localize_against needs of a query's keyframes."""
+        chosen = [self.checked(i) for i in keyframes]
+        features, points = [], []
+        for index in chosen:
+            camera_points = self.camera_points(index)
+            descriptors = self.codec.decode(np.asarray(self.codes[self.rows(index)]))
+            keypoints = projected(camera_points, self.camera(index))
+            features.append(LocalFeatures(keypoints, descriptors))
+            points.append(in_world(camera_points, self.poses[index]))
+        return StructureMap(
+            features=tuple(features),
+            points=tuple(points),
+            poses=tuple(self.pose(i) for i in chosen),
+            cameras=tuple(self.camera(i) for i in chosen),
+            names=tuple(self.name(i) for i in chosen),
+            source=self.source,
+        )
+
+    def file_bytes(self) -> int:
+        """The folder's size on disk: every file of the map."""
+        return sum(path.stat().st_size for path in self.folder.iterdir() if path.is_file())
+
+    def resident_bytes(self) -> int:
+        """What opening holds in memory: the arrays read whole (not the mapped ones)."""
+        arrays = (self.offsets, self.poses, self.cameras, self.names)
+        centres = self.codec.centres
+        return sum(a.nbytes for a in arrays) + (0 if centres is None else centres.nbytes)
+
+
+def in_world(camera_points: np.ndarray, pose_row: np.ndarray) -> np.ndarray:
+    """[N, 3] float32 world points of camera-frame points under a stored pose row
+    (position, quaternion w first); computed in float64, so a world far from the
+    origin loses nothing but the final rounding."""
+    rotation = quaternion_to_matrix(pose_row[3:])
+    return (camera_points.astype(np.float64) @ rotation.T + pose_row[:3]).astype(np.float32)
+
+
+def projected(camera_points: np.ndarray, camera: PinholeCamera) -> np.ndarray:
+    """[N, 2] float32 pixels of camera-frame points (z > 0)."""
+    z = camera_points[:, 2].astype(np.float64)
+    x = camera.fx * camera_points[:, 0] / z + camera.cx
+    y = camera.fy * camera_points[:, 1] / z + camera.cy
+    return np.stack([x, y], axis=1).astype(np.float32)
+
+
+def localize_in_compact_map(
+    compact: CompactMap,
+    query_image: np.ndarray | None,
+    camera: PinholeCamera,
+    keyframes: Sequence[int],
+    **options: object,
+) -> StructureAnswer:
+    """localize_against a compact map: the keyframes are read from disk into a small
+    StructureMap first (repeats dropped, as localize_against drops them); `options`
+    are localize_against's (max_features, ratio, ...)."""
+    if not isinstance(compact, CompactMap):
+        raise DataError(f"compact must be a CompactMap, got {type(compact).__name__}")
+    chosen = checked_keyframes(keyframes, len(compact))
+    return localize_against(
+        compact.keyframe_map(chosen), query_image, camera, list(range(len(chosen))), **options
+    )
+
+
+def read_meta(folder: Path) -> dict:
+    """map.json of `folder`, checked; DataError naming it."""
+    path = folder / META_FILE
+    if not path.is_file():
+        raise DataError(f"not a relocfw compact structure map: {path} is missing")
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
+        raise DataError(f"cannot read {path} (truncated or corrupt: {error})") from None
+    if not isinstance(meta, dict) or meta.get("kind") != COMPACT_KIND:
+        raise DataError(f"{path} is not a {COMPACT_KIND} file")
+    if meta.get("format") != COMPACT_FORMAT:
+        raise DataError(
+            f"{path}: format {meta.get('format')!r}; this relocfw reads format {COMPACT_FORMAT}"
+        )
+    wanted = {"source": SOURCES, "codes": ("grid", PQ), "point_dtype": POINT_DTYPES}
+    for key, choices in wanted.items():
+        if meta.get(key) not in choices:
+            raise DataError(f"{path}: {key} must be one of {choices}, got {meta.get(key)!r}")
+    for key in ("images", "rows", "code_bytes"):
+        if not isinstance(meta.get(key), int) or meta[key] < 0:
+            raise DataError(f"{path}: {key} must be a whole number, got {meta.get(key)!r}")
+    sizes = meta.get("file_bytes")
+    if not isinstance(sizes, dict):
+        raise DataError(f"{path}: file_bytes must map each array file to its size")
+    return meta
+
+
+def load_array(folder: Path, name: str, meta: dict) -> np.ndarray:
+    """`name`.npy of the map, memory-mapped, after its size is checked against
+    map.json's record (a truncated or overwritten file is named, not misread)."""
+    path = folder / f"{name}.npy"
+    expected = meta["file_bytes"].get(f"{name}.npy")
+    if not path.is_file():
+        raise DataError(f"compact structure map file missing: {path}")
+    size = path.stat().st_size
+    if size != expected:
+        raise DataError(
+            f"{path} is {size} bytes, map.json records {expected} (truncated or replaced)"
+        )
+    try:
+        return np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError, EOFError) as error:
+        raise DataError(f"cannot read {path} (corrupt: {error})") from None
+
+
+def check_arrays(folder: Path, arrays: dict, meta: dict, codec: DescriptorCodec) -> None:
+    """Shapes and dtypes of every array, and the values of the small ones."""
+    count, total = meta["images"], meta["rows"]
+    shapes = {
+        "offsets": ((count + 1,), np.dtype(np.int64)),
+        "codes": ((total, codec.code_bytes), np.dtype(np.uint8)),
+        "points": ((total, 3), np.dtype(meta["point_dtype"])),
+        "poses": ((count, 7), np.dtype(np.float64)),
+        "cameras": ((count, 6), np.dtype(np.float64)),
+    }
+    for name, (shape, dtype) in shapes.items():
+        array = arrays[name]
+        if array.shape != shape or array.dtype != dtype:
+            raise DataError(
+                f"{folder / (name + '.npy')} holds {array.dtype} {list(array.shape)}, "
+                f"expected {dtype} {list(shape)}"
+            )
+    names = arrays["names"]
+    if names.shape != (count,) or names.dtype.kind != "S":
+        raise DataError(f"{folder / 'names.npy'} must hold {count} byte strings")
+    offsets = np.array(arrays["offsets"])
+    if count and (offsets[0] != 0 or offsets[-1] != total or (np.diff(offsets) < 0).any()):
+        raise DataError(f"{folder / 'offsets.npy'}: offsets must rise from 0 to {total}")
+    poses = np.array(arrays["poses"])
+    norms = np.linalg.norm(poses[:, 3:], axis=1)
+    if not np.isfinite(poses).all() or (np.abs(norms - 1) > QUATERNION_TOLERANCE).any():
+        raise DataError(f"{folder / 'poses.npy'}: a pose is not finite or has no unit quaternion")
+    cameras = np.array(arrays["cameras"])
+    # Vectorised (a building has 10^5 cameras): PinholeCamera's own checks, at once.
+    sizes = cameras[:, 4:]
+    good = (
+        np.isfinite(cameras).all(axis=1)
+        & (cameras[:, :2] > 0).all(axis=1)
+        & (sizes >= 1).all(axis=1)
+        & (sizes == np.floor(sizes)).all(axis=1)
+    )
+    if not good.all():
+        number = int(np.flatnonzero(~good)[0])
+        raise DataError(
+            f"{folder / 'cameras.npy'}: camera {number} is not a camera "
+            f"(fx, fy, cx, cy, width, height = {cameras[number].tolist()})"
+        )
+    # The small arrays in memory from here on: mapped ones would read the disk per image.
+    arrays.update(offsets=offsets, poses=poses, cameras=cameras, names=np.array(names))

@@ -1,0 +1,258 @@
+"""Writing a compact structure map (the layout is relocfw.structure.compact_map's).
+
+`CompactMapWriter` streams: the caller gives each image's row count up front (the
+.npy headers hold the full shapes), then adds images one at a time, and the writer
+appends their rows to codes.npy and points.npy. A map of 10^5 images is never in
+memory, and the writes go through the file, not a memory map, so the writing
+process's resident memory stays what the small arrays take.
+
+All or nothing: the files go to a hidden folder beside the target, map.json last,
+and the folder is renamed into place when complete; an exception (or a kill) leaves
+the target as it was. An existing compact map at the target is replaced; any other
+existing folder is refused, never deleted.
+
+`save_compact_map` writes a StructureMap this way: the rows with a 3-D point, their
+points moved into their image's camera frame, descriptors coded with the codec.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from relocfw.core.camera import PinholeCamera
+from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.geometry import quaternion_to_matrix
+from relocfw.core.values import Pose
+from relocfw.structure.compact_map import (
+    COMPACT_FORMAT,
+    COMPACT_KIND,
+    META_FILE,
+    POINT_DTYPES,
+)
+from relocfw.structure.descriptor_codes import DescriptorCodec, grid_codec
+from relocfw.structure.structure_map import SOURCES, StructureMap
+
+
+class CompactMapWriter:
+    """Writes a compact map image by image; use it as a context manager.
+
+    Args:
+        folder: the map's folder (created; an existing compact map is replaced).
+        counts: rows (points) of each image, in the order they will be added.
+        codec: how descriptors are coded; `add` takes the codes.
+        source: how the points were made (StructureMap.source).
+        point_dtype: "float16" (6 bytes a point) or "float32" (12).
+
+    Raises:
+        ConfigError: naming `source`, `point_dtype` or `counts` when out of range, or
+            when `folder` exists and is not a compact map.
+    """
+
+    def __init__(
+        self,
+        folder: str | Path,
+        counts: Sequence[int] | np.ndarray,
+        codec: DescriptorCodec,
+        source: str = "depth",
+        point_dtype: str = "float16",
+    ) -> None:
+        if source not in SOURCES:
+            raise ConfigError(f"source must be one of {SOURCES}, got {source!r}")
+        if point_dtype not in POINT_DTYPES:
+            raise ConfigError(f"point_dtype must be one of {POINT_DTYPES}, got {point_dtype!r}")
+        counts = np.asarray(counts)
+        if counts.ndim != 1 or counts.dtype.kind not in "iu" or (counts < 0).any():
+            raise ConfigError("counts must be one whole number of rows per image, each >= 0")
+        self.folder = Path(folder)
+        if self.folder.exists() and not (self.folder / META_FILE).is_file():
+            raise ConfigError(f"{self.folder} exists and is not a compact structure map")
+        self.folder.parent.mkdir(parents=True, exist_ok=True)
+        self.counts = counts.astype(np.int64)
+        self.codec = codec
+        self.source = source
+        self.point_dtype = np.dtype(point_dtype)
+        self.staging = Path(
+            tempfile.mkdtemp(prefix=f".{self.folder.name}.", dir=self.folder.parent)
+        )
+        self.added = 0
+        self.poses: list[np.ndarray] = []
+        self.cameras: list[list[float]] = []
+        self.names: list[bytes] = []
+        total = int(self.counts.sum())
+        self.streams = {
+            "codes": started_array(self.staging / "codes.npy", np.uint8, (total, codec.code_bytes)),
+            "points": started_array(self.staging / "points.npy", self.point_dtype, (total, 3)),
+        }
+
+    def __enter__(self) -> CompactMapWriter:
+        return self
+
+    def __exit__(self, kind: object, error: object, trace: object) -> None:
+        if kind is None:
+            self.close()
+        else:
+            self.abort()
+
+    def add(
+        self,
+        codes: np.ndarray,
+        camera_points: np.ndarray,
+        pose: Pose,
+        camera: PinholeCamera,
+        name: str,
+    ) -> None:
+        """The next image: its descriptor codes [N, B] uint8 and points [N, 3] in its
+        camera frame (z > 0), N its count.
+
+        Raises:
+            DataError: naming the image when N is not its count, the codes are not
+                the codec's, or a point is not finite or not in front of the camera
+                in the stored dtype (float16 ends at 65504).
+        """
+        if self.added >= len(self.counts):
+            raise DataError(f"image {name!r}: all {len(self.counts)} images are written")
+        count = int(self.counts[self.added])
+        codes = np.asarray(codes)
+        if codes.dtype != np.uint8 or codes.shape != (count, self.codec.code_bytes):
+            raise DataError(
+                f"image {name!r}: codes must be uint8 [{count}, {self.codec.code_bytes}], got "
+                f"{codes.dtype} {list(codes.shape)}"
+            )
+        points = np.asarray(camera_points, dtype=np.float64)
+        if points.shape != (count, 3):
+            raise DataError(
+                f"image {name!r}: points must be [{count}, 3], got {list(points.shape)}"
+            )
+        with np.errstate(over="ignore"):  # an overflow is the check below's to name
+            stored = points.astype(self.point_dtype)
+        if not (np.isfinite(stored).all() and (stored[:, 2] > 0).all()):
+            raise DataError(
+                f"image {name!r}: a point is not finite or not in front of the camera as "
+                f"{self.point_dtype} (use point_dtype float32 for a scene of such extent)"
+            )
+        if not (isinstance(pose, Pose) and pose.is_finite and isinstance(camera, PinholeCamera)):
+            raise DataError(f"image {name!r}: needs a finite Pose and a PinholeCamera")
+        self.streams["codes"].write(np.ascontiguousarray(codes).tobytes())
+        self.streams["points"].write(np.ascontiguousarray(stored).tobytes())
+        self.poses.append(np.concatenate([pose.position, pose.quaternion]))
+        self.cameras.append(
+            [camera.fx, camera.fy, camera.cx, camera.cy, camera.width, camera.height]
+        )
+        self.names.append(str(name).encode("utf-8"))
+        self.added += 1
+
+    def close(self) -> None:
+        """Finish the map: the small arrays, map.json, then the folder into place.
+
+        Raises:
+            DataError: when fewer images were added than `counts` has.
+        """
+        if self.added != len(self.counts):
+            self.abort()
+            raise DataError(f"{self.added} images added, counts has {len(self.counts)}")
+        for stream in self.streams.values():
+            stream.flush()
+            os.fsync(stream.fileno())
+            stream.close()
+        offsets = np.concatenate([[0], np.cumsum(self.counts)]).astype(np.int64)
+        arrays = {
+            "offsets": offsets,
+            "poses": np.array(self.poses, dtype=np.float64).reshape(-1, 7),
+            "cameras": np.array(self.cameras, dtype=np.float64).reshape(-1, 6),
+            "names": np.array(self.names, dtype=bytes).reshape(-1),
+        }
+        if self.codec.centres is not None:
+            arrays["centres"] = self.codec.centres
+        for name, array in arrays.items():
+            np.save(self.staging / f"{name}.npy", array, allow_pickle=False)
+        meta = {
+            "kind": COMPACT_KIND,
+            "format": COMPACT_FORMAT,
+            "source": self.source,
+            "images": len(self.counts),
+            "rows": int(offsets[-1]),
+            "codes": self.codec.kind,
+            "code_bytes": self.codec.code_bytes,
+            "point_dtype": self.point_dtype.name,
+            "file_bytes": {p.name: p.stat().st_size for p in sorted(self.staging.glob("*.npy"))},
+        }
+        (self.staging / META_FILE).write_text(json.dumps(meta, indent=1) + "\n")
+        self.publish()
+
+    def publish(self) -> None:
+        """Rename the staging folder to the target (an older map there moved aside
+        first and removed after)."""
+        older = None
+        if self.folder.exists():
+            older = Path(
+                tempfile.mkdtemp(prefix=f".{self.folder.name}.old.", dir=self.folder.parent)
+            )
+            os.replace(self.folder, older / "map")
+        os.replace(self.staging, self.folder)
+        if older is not None:
+            shutil.rmtree(older, ignore_errors=True)
+
+    def abort(self) -> None:
+        """Drop everything written (the target is left as it was)."""
+        for stream in self.streams.values():
+            stream.close()
+        shutil.rmtree(self.staging, ignore_errors=True)
+
+
+def started_array(path: Path, dtype: np.dtype, shape: tuple[int, ...]) -> IO[bytes]:
+    """A file holding the .npy header of a C-ordered array of `shape`, open for its
+    rows to be appended."""
+    stream = open(path, "wb")  # noqa: SIM115 (closed by the writer)
+    header = {
+        "descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
+        "fortran_order": False,
+        "shape": shape,
+    }
+    np.lib.format.write_array_header_1_0(stream, header)
+    return stream
+
+
+def camera_frame(world_points: np.ndarray, pose: Pose) -> np.ndarray:
+    """[N, 3] float64 world points in the camera frame of a camera-to-world pose."""
+    rotation = quaternion_to_matrix(pose.quaternion)
+    return (np.asarray(world_points, dtype=np.float64) - pose.position) @ rotation
+
+
+def save_compact_map(
+    structure: StructureMap,
+    folder: str | Path,
+    codec: DescriptorCodec | None = None,
+    point_dtype: str = "float16",
+) -> None:
+    """Write a StructureMap as a compact map: each image's rows with a 3-D point.
+
+    Args:
+        structure: the map.
+        folder: the compact map's folder.
+        codec: the descriptor code (None: the uint8 grid, 128 bytes, exact).
+        point_dtype: "float16" or "float32".
+
+    Raises:
+        DataError: naming the image whose points do not fit `point_dtype`.
+    """
+    codec = grid_codec() if codec is None else codec
+    kept = [np.isfinite(points).all(axis=1) for points in structure.points]
+    counts = [int(rows.sum()) for rows in kept]
+    with CompactMapWriter(folder, counts, codec, structure.source, point_dtype) as writer:
+        for index, rows in enumerate(kept):
+            pose = structure.poses[index]
+            writer.add(
+                codec.encode(structure.features[index].descriptors[rows]),
+                camera_frame(structure.points[index][rows], pose),
+                pose,
+                structure.cameras[index],
+                structure.names[index],
+            )
