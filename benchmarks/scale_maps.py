@@ -60,13 +60,21 @@ def single_threaded_worker() -> None:
     torch.set_num_threads(1)
 
 
-def build_part(frames: list, cameras: SceneCameras, max_features: int) -> StructureMap:
+def build_part(
+    frames: list, cameras: SceneCameras, max_features: int, image_scale: float = 1.0
+) -> StructureMap:
     """build_from_depth of some frames (a pool task)."""
-    return build_from_depth(LazyViews(frames, cameras), max_features=max_features, quiet=True)
+    views = LazyViews(frames, cameras)
+    return build_from_depth(views, max_features=max_features, quiet=True, image_scale=image_scale)
 
 
 def timed_build(
-    frames: list, cameras: SceneCameras, max_features: int, workers: int, opencv_threads: int
+    frames: list,
+    cameras: SceneCameras,
+    max_features: int,
+    workers: int,
+    opencv_threads: int,
+    image_scale: float = 1.0,
 ) -> tuple[StructureMap, dict]:
     """The real build of `frames`, timed: in this process with `opencv_threads` OpenCV
     threads (workers = 1), or split over a pool of `workers` processes of one thread
@@ -75,7 +83,7 @@ def timed_build(
     start = time.perf_counter()
     if workers == 1:
         cv2.setNumThreads(opencv_threads)
-        structure = build_part(frames, cameras, max_features)
+        structure = build_part(frames, cameras, max_features, image_scale)
     else:
         # Small tasks, several per worker, so no worker idles at the end. fork: the
         # workers inherit the imports (torch has run nothing yet, so no thread pool
@@ -84,7 +92,9 @@ def timed_build(
         parts = [frames[i : i + step] for i in range(0, len(frames), step)]
         context = multiprocessing.get_context("fork")
         with ProcessPoolExecutor(workers, context, initializer=single_threaded_worker) as pool:
-            futures = [pool.submit(build_part, part, cameras, max_features) for part in parts]
+            futures = [
+                pool.submit(build_part, part, cameras, max_features, image_scale) for part in parts
+            ]
             structure = merged([future.result() for future in futures])
     seconds = time.perf_counter() - start
     return structure, {

@@ -6,7 +6,8 @@ Method.
    5, 7; 400 by default, all of them), once per mode: one worker with one OpenCV
    thread, one worker with --opencv-threads OpenCV threads, and a process pool of each
    of --workers (one thread per worker; the frames in small tasks, the parts merged in
-   order). Each mode's map must equal the first's (`same_map_as_first`). Build time at
+   order). SIFT runs at --image-scale of each side (0.5, refine=features' default;
+   queries too). Each mode's map must equal the first's (`same_map_as_first`). Build time at
    a larger size is extrapolated from the images per second (every image is built
    alone, so the cost is linear): such rows list "build" under `extrapolated`.
 2. Today's layout at the built size, measured: the StructureMap's arrays in memory
@@ -150,7 +151,14 @@ def reference_queries(structure, queries, images, keyframes, camera, args) -> di
     """Queries against the in-memory StructureMap (every keypoint, float32)."""
     errors, inliers, seconds = [], [], []
     for frame, image, chosen in zip(queries, images, keyframes, strict=True):
-        answer = localize_against(structure, image, camera, chosen, max_features=args.max_features)
+        answer = localize_against(
+            structure,
+            image,
+            camera,
+            chosen,
+            max_features=args.max_features,
+            image_scale=args.image_scale,
+        )
         errors.append(pose_errors(answer.pose, frame.pose))
         inliers.append(answer.inliers)
         seconds.append(answer.seconds)
@@ -178,7 +186,12 @@ def compact_queries(
         warm = time.perf_counter()
         rss_open = rss_open or rss_mib()
         answer = localize_against(
-            keyframe_map, image, camera, list(range(len(chosen))), max_features=args.max_features
+            keyframe_map,
+            image,
+            camera,
+            list(range(len(chosen))),
+            max_features=args.max_features,
+            image_scale=args.image_scale,
         )
         errors.append(
             pose_errors(answer.pose, placed(frame.pose, *copy_transform(copy, args.seed)))
@@ -259,7 +272,9 @@ def build_stage(frames: list, cameras, args, report: dict) -> StructureMap:
     modes += [(workers, 1) for workers in args.workers if workers > 1]
     structure = None
     for workers, threads in modes:
-        built, row = timed_build(frames, cameras, args.max_features, workers, threads)
+        built, row = timed_build(
+            frames, cameras, args.max_features, workers, threads, args.image_scale
+        )
         if structure is None:
             structure = built
         else:
@@ -479,6 +494,9 @@ def parse_arguments() -> argparse.Namespace:
         help="a one-worker build with this many OpenCV threads (<= 1: none)",
     )
     parser.add_argument("--max-features", type=int, default=1024)
+    parser.add_argument(
+        "--image-scale", type=float, default=0.5, help="SIFT's share of each side (refine's)"
+    )
     parser.add_argument("--queries", type=int, default=30)
     parser.add_argument("--keyframes", type=int, default=10)
     parser.add_argument(
@@ -522,6 +540,7 @@ def new_report(args: argparse.Namespace, scene: Path, frames: list, queries: lis
         "queries": len(queries),
         "keyframes": args.keyframes,
         "max_features": args.max_features,
+        "image_scale": args.image_scale,
         "point_dtype": args.point_dtype,
         "scale_code_bytes": args.scale_code,
         "retrieval_descriptors": (
