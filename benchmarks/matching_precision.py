@@ -30,7 +30,7 @@ from common import write_json  # benchmarks/, the script's own folder
 from structure_query import TEST_SEQUENCES, TRAIN_SEQUENCES, frames_of, read_rgb_cv2, set_threads
 
 from relocfw.structure.features import extract_rootsift
-from relocfw.structure.matching import matches_of_distances
+from relocfw.structure.matching import matches_of_distances, squared_distances
 from relocfw.structure.structure_map import on_descriptor_grid
 
 PRECISIONS = {"float32": torch.float32, "bfloat16": torch.bfloat16}
@@ -56,10 +56,13 @@ def parse_arguments() -> argparse.Namespace:
 def matches(query: torch.Tensor, candidates: torch.Tensor, ends: list[int], ratio: float, dtype):
     """Per keyframe the (query, keyframe keypoint) matches, as matching.py finds them
     but with the product in `dtype`; a set of (keyframe, query, keypoint) triples."""
-    query_norms = (query * query).sum(dim=1, keepdim=True)
-    candidate_norms = (candidates * candidates).sum(dim=1)[None, :]
-    product = (query.to(dtype) @ candidates.to(dtype).T).to(torch.float32)
-    distances = (query_norms + candidate_norms - 2.0 * product).clamp_(min=0.0)
+    if dtype == torch.float32:
+        distances = squared_distances(query, candidates)  # relocfw's own
+    else:
+        query_norms = (query * query).sum(dim=1, keepdim=True)
+        candidate_norms = (candidates * candidates).sum(dim=1)[None, :]
+        product = (query.to(dtype) @ candidates.to(dtype).T).to(torch.float32)
+        distances = (query_norms + candidate_norms - 2.0 * product).clamp_(min=0.0)
     found, start = set(), 0
     for number, end in enumerate(ends):
         pairs = matches_of_distances(distances[:, start:end], ratio)

@@ -92,6 +92,7 @@ from relocfw.structure.refiner_state import (
     STATE_LABEL,
     STATE_NUMBERS,
     checked_keyframes_choice,
+    checked_min_iterations,
     options_state,
     stored_keyframe_descriptors,
     stored_options,
@@ -189,9 +190,7 @@ class FeaturesRefiner(PoseRefiner):
                 f"refine.match_points_only must be true or false, got {match_points_only!r}"
             )
         self.match_points_only = match_points_only
-        self.ransac_min_iterations = integer_at_least(
-            "refine.ransac_min_iterations", ransac_min_iterations, 1
-        )
+        self.ransac_min_iterations = checked_min_iterations(ransac_min_iterations)
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
 
     def source_for(self, frames: Sequence[object]) -> str:
@@ -260,6 +259,13 @@ class FeaturesRefiner(PoseRefiner):
         self.tracked.clear()  # poses of another map's frames
         self.camera = map_camera(views)
         source = self.check_source(views, depth_files=False)
+        if source == "colmap" and self.image_scale != 1.0 and not quiet:
+            print(
+                f"note: refine=features on a COLMAP model's points with SIFT at "
+                f"image_scale {self.image_scale:g}, a share chosen on depth and triangulated "
+                "maps, not yet on COLMAP observations (full-size pixels, refine.radius_px); "
+                "refine=features_colmap uses 1.0"
+            )
         self.zscore = ZScore().fit(check_features(descriptors))
         self.points = self.zscore(check_features(descriptors))
         self.poses = [view.pose for view in views]

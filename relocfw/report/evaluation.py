@@ -221,8 +221,10 @@ def summarise(result: MethodResult) -> dict[str, float | int | str]:
 
 def network_seconds(answer: Localization) -> float:
     """The part of a query's time before its refiner: the crop search with its network
-    passes (the whole time for a method without a refiner). With the refiner's parts
-    (refine_median_ms_*) it makes up the query's time, median_seconds_per_query."""
+    passes (the whole time for a method without a refiner). Per query, it and the
+    refiner's parts add up to the query's time (their medians, the summary's columns,
+    need not add up). With queries_at_once > 1 a query's time is its group's share,
+    so this part is only meaningful one query at a time."""
     # "tracking_retry" is the retry's whole time, whose parts are already added into
     # the others (plugins/features_refiner.py): counted once.
     parts = (spent for part, spent in answer.refine_seconds.items() if part != "tracking_retry")

@@ -27,6 +27,9 @@ RANSAC_SEED = 0  # fixed: the same correspondences give the same pose on every r
 # inliers that takes far fewer rounds, so the least number is most of the solve's time
 # (about 5 ms of 6 for 300 clean correspondences).
 POSELIB_MIN_ITERATIONS = 1000
+# PoseLib's own most rounds: a least number above it (a typo, or a crafted model file)
+# would make every query run that long.
+POSELIB_MAX_ITERATIONS = 100_000
 
 
 @dataclass(frozen=True)
@@ -111,6 +114,11 @@ def solve_absolute_pose(
     max_error = positive_number("max_error_px", max_error_px)
     min_inliers = integer_at_least("min_inliers", min_inliers, MINIMUM_CORRESPONDENCES)
     min_iterations = integer_at_least("min_iterations", min_iterations, 1)
+    if min_iterations > POSELIB_MAX_ITERATIONS:
+        raise ConfigError(
+            f"min_iterations must be at most {POSELIB_MAX_ITERATIONS} (PoseLib's most "
+            f"rounds), got {min_iterations}"
+        )
     try:
         import poselib
     except ImportError:
@@ -130,7 +138,7 @@ def solve_absolute_pose(
         "max_reproj_error": max_error,
         "seed": RANSAC_SEED,
         "min_iterations": min_iterations,
-        "max_iterations": max(min_iterations, 100_000),  # PoseLib's own most
+        "max_iterations": POSELIB_MAX_ITERATIONS,
     }
     world_to_camera, info = poselib.estimate_absolute_pose(image, world, camera_model, ransac, {})
     inliers = int(info.get("num_inliers", 0))

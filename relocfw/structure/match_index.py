@@ -29,6 +29,7 @@ import torch
 from relocfw.core.errors import DataError
 from relocfw.structure.features import LocalFeatures
 from relocfw.structure.matching import matches_of_distances, one_match_per_query
+from relocfw.structure.query_checks import checked_keyframes
 from relocfw.structure.structure_map import DESCRIPTOR_SCALE, StructureMap, quantised
 
 
@@ -101,6 +102,7 @@ class MatchIndex:
             points, in query keypoint order; rows whose point is NaN (possible only
             without `points_only`) are dropped.
         """
+        keyframes = checked_keyframes(keyframes, len(self))
         rows = self.rows_of(keyframes)
         if len(query) == 0 or len(rows) == 0:
             return np.zeros((0, 2)), np.zeros((0, 3))

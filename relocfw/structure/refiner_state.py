@@ -16,6 +16,7 @@ import torch
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.standardise import ZScore
+from relocfw.structure.absolute_pose import POSELIB_MAX_ITERATIONS
 from relocfw.structure.map_state import checked_tensor
 
 # Stored as its index here: append new choices, never reorder (older files keep
@@ -27,6 +28,17 @@ STATE_NUMBERS = ("ratio", "max_error_px", "image_scale")
 # Options kept as 0 / 1.
 STATE_FLAGS = ("match_points_only",)
 STATE_LABEL = "refine=features state"
+
+
+def checked_min_iterations(value: object) -> int:
+    """refine.ransac_min_iterations in 1 .. PoseLib's most rounds, or a ConfigError."""
+    rounds = integer_at_least("refine.ransac_min_iterations", value, 1)
+    if rounds > POSELIB_MAX_ITERATIONS:
+        raise ConfigError(
+            f"refine.ransac_min_iterations must be at most {POSELIB_MAX_ITERATIONS} "
+            f"(PoseLib's most rounds), got {rounds}"
+        )
+    return rounds
 
 
 def checked_keyframes_choice(keyframes: object) -> str:
@@ -64,6 +76,8 @@ def stored_options(state: dict[str, torch.Tensor]) -> dict:
             if key in state:
                 value = int(checked_tensor(state, key, torch.int64, STATE_LABEL))
                 options[key] = integer_at_least(f"refine.{key}", value, STATE_INTEGERS[key])
+                if key == "ransac_min_iterations":
+                    options[key] = checked_min_iterations(value)
         for key in STATE_NUMBERS:
             if key in state:
                 value = float(checked_tensor(state, key, torch.float64, STATE_LABEL))

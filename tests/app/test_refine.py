@@ -131,10 +131,13 @@ def test_structure_rows_take_turns_and_report_the_whole_query(tmp_path):
         parts = [row[f"refine_median_ms_{p}"] for p in ("retrieval", "features", "matching")]
         assert 0 < row["median_ms_network"] < 1000 * row["median_seconds_per_query"]
         assert sum(parts) < 1000 * row["median_seconds_per_query"]
-    # SIFT on a quarter of the pixels: less extraction time than at full size.
-    assert (
-        summary["Depth half"]["refine_median_ms_features"]
-        < summary["Depth"]["refine_median_ms_features"]
-    )
     bad = relocfw_here([*args, "compare.round_robin=yes"], tmp_path)
     assert bad.returncode != 0 and "compare.round_robin must be true or false" in bad.stderr
+
+
+def test_round_robin_refuses_grouped_queries_before_training(tmp_path):
+    args = [*TINY_MODEL, *SCENE, "task=compare", "methods=structure_core"]
+    result = relocfw_here([*args, "compare.round_robin=true", "query.queries_at_once=4"], tmp_path)
+    assert result.returncode == 2
+    assert "compare.round_robin times one query at a time" in result.stderr
+    assert not list((tmp_path / "cache").glob("checkpoints/*.pt"))  # nothing trained

@@ -53,6 +53,25 @@ def test_fewer_least_rounds_find_the_same_pose_when_inliers_abound(seed):
     assert np.linalg.norm(few.pose.position - truth.position) < 0.01
 
 
+def test_the_least_rounds_reach_poselib(monkeypatch):
+    import poselib
+
+    seen = []
+    real = poselib.estimate_absolute_pose
+
+    def recording(points_2d, points_3d, camera, ransac, bundle):
+        seen.append(dict(ransac))
+        return real(points_2d, points_3d, camera, ransac, bundle)
+
+    monkeypatch.setattr(poselib, "estimate_absolute_pose", recording)
+    truth, pixels, world, _ = noisy_problem(4)
+    solve_absolute_pose(pixels, world, CAMERA, min_iterations=50)
+    solve_absolute_pose(pixels, world, CAMERA)
+    assert [r["min_iterations"] for r in seen] == [50, 1000]
+    with pytest.raises(ConfigError, match="at most 100000"):
+        solve_absolute_pose(pixels, world, CAMERA, min_iterations=2**40)
+
+
 def test_exact_correspondences_give_the_exact_pose():
     rng = np.random.default_rng(7)
     truth = random_pose(rng)

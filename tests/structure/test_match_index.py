@@ -7,7 +7,7 @@ import pytest
 
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import orientation_error_deg
-from relocfw.structure.features import extract_rootsift
+from relocfw.structure.features import extract_rootsift, to_full_image
 from relocfw.structure.match_index import MatchIndex
 from relocfw.structure.query_solver import correspondences_of, localize_against
 from relocfw.structure.structure_map import build_from_depth
@@ -101,3 +101,20 @@ def test_a_half_size_map_and_query_localize(synthetic_scene):
     truth = synthetic_scene.query_pose
     assert answer.success
     assert np.linalg.norm(answer.pose.position - truth.position) < 0.02
+
+
+def test_resized_pixels_map_back_through_pixel_centres():
+    # Halved: the small image's pixel 0 covers full pixels 0 and 1, centred at 0.5;
+    # its edge -0.5 is the full image's edge -0.5.
+    small = np.array([[0.0, 0.0], [-0.5, -0.5], [10.0, 3.0]], dtype=np.float32)
+    full = to_full_image(small, 2.0, 2.0)
+    np.testing.assert_allclose(full, [[0.5, 0.5], [-0.5, -0.5], [20.5, 6.5]])
+    np.testing.assert_allclose(to_full_image(small, 1.0, 1.0), small)
+
+
+def test_an_index_refuses_keyframes_it_does_not_hold(depth_structure, synthetic_scene):
+    query = extract_rootsift(synthetic_scene.query_image, 256)
+    index = MatchIndex.of(depth_structure)
+    for wrong in ([2], [-1]):
+        with pytest.raises(DataError, match="not an image of the map"):
+            index.correspondences(query, wrong, 0.8)

@@ -131,6 +131,16 @@ def test_the_cache_key_holds_every_triangulation_parameter():
     }
 
 
+def test_the_cache_key_holds_the_image_scale_but_not_at_full_size():
+    pose = Pose(np.zeros(3), IDENTITY)
+    view = MapImage("frame", np.zeros((4, 6, 3), np.uint8), pose)
+    full = FeaturesRefiner(image_scale=1.0).settings([view])
+    half = FeaturesRefiner(image_scale=0.5).settings([view])
+    # Full size keeps the key maps had before the option (their caches still found).
+    assert "image_scale" not in full and half["image_scale"] == 0.5
+    assert {k: v for k, v in half.items() if k != "image_scale"} == full
+
+
 # --- refine=features without depth -----------------------------------------------
 
 

@@ -300,6 +300,8 @@ def test_a_state_from_before_the_options_answers_as_it_did(small_map):
     [
         ("image_scale", torch.tensor(1.5, dtype=torch.float64), "image_scale"),
         ("match_points_only", torch.tensor(2), "match_points_only must be 0 or 1"),
+        ("ransac_min_iterations", torch.tensor(2**40), "at most 100000"),
+        ("ransac_min_iterations", torch.tensor(0), "ransac_min_iterations"),
     ],
 )
 def test_a_forged_scale_or_flag_is_one_data_error(small_map, key, value, message):

@@ -146,7 +146,7 @@ def plan(
     base = [o for o in overrides.task if not o.lstrip("~+").startswith(("task=", "compare."))]
     # A user's own methods file is found through hydra.searchpath, which Hydra keeps
     # apart from the task's overrides: each row must be composed with it too.
-    base += [o for o in overrides.hydra if o.startswith("hydra.searchpath=")]
+    base += [o for o in overrides.hydra if o.lstrip("+").startswith("hydra.searchpath=")]
     plans, rows = {}, {}
     for seed in seeds:
         for scene in scenes:
@@ -202,6 +202,16 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         raise ConfigError(f"compare.round_robin must be true or false, got {round_robin!r}")
     plans, rows = plan(methods, scenes, seeds)
     one_calibration(plans)
+    if round_robin:
+        for (_, _, name), (method_cfg, _) in plans.items():
+            # Checked before any row trains: taking turns times one query at a time.
+            at_once = method_cfg.query.get("queries_at_once")
+            if at_once is not None and int(at_once) != 1:
+                raise ConfigError(
+                    f"compare.round_robin times one query at a time, but row {name!r} "
+                    f"answers {at_once} at once (query.queries_at_once): set it to 1 or "
+                    "compare.round_robin=false"
+                )
     for (_, _, name), (method_cfg, _) in plans.items():
         try:  # a row's engine options, before any row trains
             wanted_engine(method_cfg, device)
@@ -230,7 +240,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
                 print(f"\n== {label}: training seed {seed} ==")
             results[seed][label], seed_runs[seed][label] = {}, {}
             maps[seed][label] = None
-            fitted: dict[str, tuple] = {}
+            fitted: dict[str, Fitted] = {}
             for name in methods:
                 method_cfg, choices = plans[seed, scene, name]
                 method = build_method(method_cfg, choices, label=rows[name])
@@ -244,29 +254,32 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
                     method_cfg, method.relocalizer(device), checkpoint, device, train[1]
                 )
                 if round_robin:
-                    # Every row fitted first; the queries then take turns (below).
+                    # Every row fitted first, all held at once; the queries then take
+                    # turns (below).
                     features = fit_method(rows[name], relocalizer, train, quiet, calibration)
-                    fitted[name] = (method_cfg, choices, method, relocalizer, features)
+                    fitted[name] = Fitted(method_cfg, choices, method, relocalizer, features)
                     continue
                 result, features = run_method(
                     rows[name], relocalizer, train, test, quiet, calibration
                 )
-                fitted[name] = (method_cfg, choices, method, relocalizer, features)
                 results[seed][label][rows[name]] = result
+                # Row after row, nothing is held: a row's map is freed before the next.
+                row = Fitted(method_cfg, choices, method, relocalizer, features)
+                seed_runs[seed][label] |= crop_seed_runs(
+                    rows[name], row, result, test, crop_seeds, quiet
+                )
+                maps[seed][label] = maps[seed][label] or kmeans_map(row)
             if round_robin:
-                turns = {rows[n]: entry[3] for n, entry in fitted.items()}
+                turns = {rows[n]: row.relocalizer for n, row in fitted.items()}
                 print(f"{label}: {len(turns)} methods take turns, query by query")
                 results[seed][label] = evaluate_round_robin(turns, *test, quiet=quiet)
-            for name, (method_cfg, choices, method, relocalizer, features) in fitted.items():
-                result = results[seed][label][rows[name]]
-                if "seed" in method_cfg.crop and len(crop_seeds) > 1:
-                    seed_runs[seed][label][rows[name]] = rerun_crop_seeds(
-                        method_cfg, choices, relocalizer, result, test, crop_seeds, quiet
+                for name, row in fitted.items():
+                    result = results[seed][label][rows[name]]
+                    seed_runs[seed][label] |= crop_seed_runs(
+                        rows[name], row, result, test, crop_seeds, quiet
                     )
-                if maps[seed][label] is None and hasattr(method.index, "centres"):
-                    standardised = method.index.zscore(features)
-                    labels = method.index.assign(features)
-                    maps[seed][label] = MapView(standardised, method.index.centres, labels)
+                    maps[seed][label] = maps[seed][label] or kmeans_map(row)
+                fitted.clear()
     for seed in seeds:
         write_comparison(
             results[seed],
@@ -284,6 +297,43 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         )
     if unit.note:
         print(f"note: {unit.note}")
+
+
+@dataclass(frozen=True)
+class Fitted:
+    """One compare row, built and fitted: what its crop-seed reruns and the map need."""
+
+    method_cfg: DictConfig
+    choices: Mapping[str, str]
+    method: Any
+    relocalizer: Relocalizer
+    features: np.ndarray
+
+
+def crop_seed_runs(
+    label: str,
+    row: Fitted,
+    result: MethodResult,
+    test: tuple,
+    crop_seeds: list[int],
+    quiet: bool,
+) -> dict[str, dict[int, MethodResult]]:
+    """The row's reruns over compare.crop_seeds where its crop search has a seed (the
+    GA), keyed by the row's label; empty otherwise."""
+    if "seed" not in row.method_cfg.crop or len(crop_seeds) < 2:
+        return {}
+    runs = rerun_crop_seeds(
+        row.method_cfg, row.choices, row.relocalizer, result, test, crop_seeds, quiet
+    )
+    return {label: runs}
+
+
+def kmeans_map(row: Fitted) -> MapView | None:
+    """The map figure's data from a row whose index has k-means centres; None else."""
+    index = row.method.index
+    if not hasattr(index, "centres"):
+        return None
+    return MapView(index.zscore(row.features), index.centres, index.assign(row.features))
 
 
 def one_unit(units: Mapping[str, PositionUnit]) -> PositionUnit:
