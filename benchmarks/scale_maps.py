@@ -60,6 +60,12 @@ def single_threaded_worker() -> None:
     torch.set_num_threads(1)
 
 
+def warm_up(seconds: float) -> None:
+    """A pool task that holds its worker a moment, so every worker starts (and
+    imports this module) before the timed tasks."""
+    time.sleep(seconds)
+
+
 def build_part(
     frames: list, cameras: SceneCameras, max_features: int, image_scale: float = 1.0
 ) -> StructureMap:
@@ -85,13 +91,19 @@ def timed_build(
         cv2.setNumThreads(opencv_threads)
         structure = build_part(frames, cameras, max_features, image_scale)
     else:
-        # Small tasks, several per worker, so no worker idles at the end. fork: the
-        # workers inherit the imports (torch has run nothing yet, so no thread pool
-        # is copied mid-use).
+        # Small tasks, several per worker, so no worker idles at the end. spawn, not
+        # fork: a fork copies OpenCV's thread pool after the one-worker builds used it,
+        # and the children then wait forever on its locks (seen: workers asleep on a
+        # futex). The workers start and import before the clock starts again (their
+        # CPU time, counted when they end, still holds that start-up).
         step = max(1, len(frames) // (4 * workers))
         parts = [frames[i : i + step] for i in range(0, len(frames), step)]
-        context = multiprocessing.get_context("fork")
+        context = multiprocessing.get_context("spawn")
         with ProcessPoolExecutor(workers, context, initializer=single_threaded_worker) as pool:
+            for started in [pool.submit(warm_up, 1.0) for _ in range(workers)]:
+                started.result()
+            start_cpu = cpu_seconds()
+            start = time.perf_counter()
             futures = [
                 pool.submit(build_part, part, cameras, max_features, image_scale) for part in parts
             ]
