@@ -1,0 +1,192 @@
+"""The families table (issue 45, point 3; docs/results/families.md): the rows of
+`relocfw task=compare methods=families` (3 training seeds, round robin, paired
+against PoseNet), grouped by the paper's three families, beside what each row costs
+to build and ship (benchmarks/family_costs.py).
+
+Reads each split's compare run folder (comparison.json: the spread over seeds and
+the paired tests; seed_<n>/summary_<scene>.json: fallbacks and ms per query) and the
+costs JSON, and writes one Markdown table per split and a JSON of the same numbers.
+An optional unpaired row (COLMAP's points, which need dataset=colmap and so run on
+their own queries) is read from benchmarks/results/colmap_points.json and marked so.
+
+    .venv/bin/python benchmarks/families_table.py --split near=outputs/families_near \\
+        --split far=outputs/families_far --costs benchmarks/results/family_costs.json \\
+        --out benchmarks/results/families.json --markdown docs/results/families_tables.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from common import write_json  # benchmarks/, the script's own folder
+
+from relocfw.model.checkpoints import write_text_atomic
+from relocfw.report.comparison import as_markdown
+from relocfw.report.seed_comparison import paired_cell
+
+# The paper's division of relocalizers; a row not named here is "other".
+FAMILY = {
+    "Retrieval (keyframes)": "keyframe",
+    "Relative pose (keyframes)": "keyframe",
+    "Features + depth": "feature",
+    "Features, RGB only": "feature",
+    "PoseNet": "learning",
+    "Ours (GA + k-means)": "learning",
+    "Bayesian PoseNet": "learning",
+    "Hourglass": "learning",
+    "Sequence, causal LSTM (20 frames)": "learning",
+    "Scene coordinates + depth": "learning",
+    "Scene coordinates, RGB only": "learning",
+}
+ORDER = ("keyframe", "feature", "learning", "other")
+HEADER = [
+    "family",
+    "method",
+    "median position (m)",
+    "median orientation (deg)",
+    "5 cm / 5 deg",
+    "fell back (per seed)",
+    "position vs PoseNet (m)",
+    "orientation vs PoseNet (deg)",
+    "network training (s)",
+    "map / head fit (s)",
+    "model file (MB)",
+    "ms per query",
+]
+
+
+def spread_cell(stats: dict, digits: int) -> str:
+    return f"{stats['mean']:.{digits}f} +- {stats['std']:.{digits}f}"
+
+
+def seed_summaries(run: Path, scene: str, seeds: list[int]) -> list[dict[str, dict]]:
+    """Per seed: method -> its summary row (fallbacks, ms per query)."""
+    found = []
+    for seed in seeds:
+        path = run / f"seed_{seed}" / f"summary_{scene}.json"
+        if not path.is_file():
+            sys.exit(f"{path}: missing; is {run} a finished multi-seed compare run?")
+        found.append({row["method"]: row for row in json.loads(path.read_text())})
+    return found
+
+
+def cost_cells(costs: dict | None, method: str) -> tuple[list[str], dict]:
+    """Network training, fit and model-file cells of one row, and their JSON."""
+    row = (costs or {}).get("rows", {}).get(method)
+    if row is None:
+        return ["-", "-", "-"], {}
+    shared = row["network_trained_by"] != method
+    network = (
+        f"(PoseNet's: {costs['rows'][row['network_trained_by']]['network_seconds']:.0f})"
+        if shared
+        else f"{row['network_seconds']:.0f}"
+    )
+    fit = f"{row['fit_seconds']:.0f}"
+    parts = row.get("fit_parts_seconds")
+    if parts and "training" in parts:
+        fit += f" (head {parts['training']:.0f})"
+    size = f"{row['model_bytes'] / 1e6:.1f}"
+    if not row["refiner_stored"]:
+        size += " (no refiner)"
+    return [network, fit, size], row
+
+
+def split_table(name: str, run: Path, costs: dict | None) -> tuple[str, dict]:
+    comparison = json.loads((run / "comparison.json").read_text())
+    seeds = comparison["seeds"]
+    (scene, methods), *more = comparison["scenes"].items()
+    if more:
+        sys.exit(f"{run}: one scene per run expected, found {len(more) + 1}")
+    summaries = seed_summaries(run, scene, seeds)
+    rows, report = [], {}
+    ranked = sorted(
+        (m for m in methods if m != "mean training pose"),
+        key=lambda m: ORDER.index(FAMILY.get(m, "other")),
+    )
+    for method in ranked:
+        stats = methods[method]
+        per_seed = [s[method] for s in summaries]
+        fell_back = [int(s.get("refine_fell_back", 0)) for s in per_seed]
+        ms = [1000 * s["median_seconds_per_query"] for s in per_seed]
+        paired = stats.get("vs_reference")
+        cells, cost = cost_cells(costs, method)
+        rows.append(
+            [
+                FAMILY.get(method, "other"),
+                method,
+                spread_cell(stats["median_position_m"], 3),
+                spread_cell(stats["median_orientation_deg"], 2),
+                f"{100 * stats['within_0.05m_5deg']['mean']:.1f}%",
+                " ".join(str(n) for n in fell_back),
+                paired_cell(paired["position_m"], ".3f") if paired else "(reference)",
+                paired_cell(paired["orientation_deg"], ".2f") if paired else "(reference)",
+                *cells,
+                f"{sum(ms) / len(ms):.1f}",
+            ]
+        )
+        report[method] = {
+            "family": FAMILY.get(method, "other"),
+            "median_position_m": stats["median_position_m"],
+            "median_orientation_deg": stats["median_orientation_deg"],
+            "within_0.05m_5deg": stats["within_0.05m_5deg"],
+            "refine_fell_back": fell_back,
+            "ms_per_query": ms,
+            "vs_posenet": paired,
+            "costs": cost,
+        }
+    markdown = f"### {name}\n\n" + as_markdown(HEADER, rows)
+    return markdown, {"run": str(run), "seeds": seeds, "scene": scene, "methods": report}
+
+
+def colmap_rows(path: Path) -> str:
+    """The COLMAP rows: their own queries and one model, so no spread and no pair."""
+    found = json.loads(path.read_text())
+    lines = [
+        f"From `{found['command']}`: a pycolmap model of {found['map_images']} map images, "
+        f"{found['query_images']} queries of its own (unpaired with the tables above)."
+    ]
+    for name, row in found["rows"].items():
+        lines.append(
+            f"- `refine={name}` ({row['structure_source']} points): "
+            f"{row['median_position_m']:.3f} m / {row['median_orientation_deg']:.2f} deg, "
+            f"{100 * row['within_5cm_5deg']:.0f}% within 5 cm / 5 deg, "
+            f"{row['fallbacks']} of {row['queries']} fell back, map built in "
+            f"{row['map_build_s']:.0f} s, {1000 * row['median_query_s']:.0f} ms per query"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument(
+        "--split", action="append", required=True, help="NAME=compare run folder (repeatable)"
+    )
+    parser.add_argument("--costs", type=Path, help="benchmarks/family_costs.py's JSON")
+    parser.add_argument("--colmap", type=Path, help="benchmarks/colmap_points.py's JSON")
+    parser.add_argument("--out", type=Path, default=Path("benchmarks/results/families.json"))
+    parser.add_argument("--markdown", type=Path, help="also write the tables to this file")
+    args = parser.parse_args()
+    costs = json.loads(args.costs.read_text()) if args.costs else None
+    parts, report = [], {"costs": costs, "splits": {}}
+    for split in args.split:
+        name, _, folder = split.partition("=")
+        if not folder:
+            sys.exit(f"--split {split!r}: give NAME=FOLDER, e.g. near=outputs/families_near")
+        markdown, report["splits"][name] = split_table(name, Path(folder), costs)
+        parts.append(markdown)
+    if args.colmap:
+        parts.append(
+            "### COLMAP's points (dataset=colmap, unpaired)\n\n" + colmap_rows(args.colmap)
+        )
+    text = "\n".join(parts)
+    print(text)
+    write_json(report, args.out)
+    if args.markdown:
+        write_text_atomic(text + "\n", args.markdown)
+
+
+if __name__ == "__main__":
+    main()
