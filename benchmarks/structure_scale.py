@@ -31,6 +31,7 @@ Method.
    it) and carries that copy's signature, so retrieval searches every image and must
    find the right copy. Timed per query: today's keyframes_by_descriptor (numpy,
    z-scored, exhaustive) and plugins/faiss_index.py for each of --faiss-kinds
+   (`kind` or `kind:precision`, e.g. flat:float16)
    (recall: the share of the exhaustive keyframes found).
    Query: the first faiss kind's keyframes; the map's file pages are evicted from
    the page cache (posix_fadvise), the map opened, the keyframes read from disk
@@ -92,7 +93,7 @@ from structure_query import (
 
 from relocfw.core.standardise import ROWS_AT_A_TIME, ZScore
 from relocfw.data.sevenscenes import scene_cameras
-from relocfw.plugins.faiss_index import FaissIndex, import_faiss
+from relocfw.plugins.faiss_index import KINDS, PRECISIONS, FaissIndex, import_faiss
 from relocfw.structure import StructureMap, localize_against
 from relocfw.structure.compact_map import CompactMap
 from relocfw.structure.descriptor_codes import codec_of_bytes
@@ -222,6 +223,13 @@ def timed_queries(search, asked: list[np.ndarray]) -> tuple[list[list[int]], lis
     return found, seconds
 
 
+def faiss_spec(spec: str) -> tuple[str, str]:
+    """--faiss-kinds' entry as (kind, precision): "flat", "ivf", "flat:float16" (the
+    descriptors stored as float16: half the bytes to read, still an exhaustive search)."""
+    kind, _, precision = spec.partition(":")
+    return kind, precision or "float32"
+
+
 def retrieval_stage(
     descriptors: np.ndarray, asked: list[np.ndarray], kinds: list[str], args
 ) -> tuple[dict, dict[str, list[list[int]]], dict[str, list[float]]]:
@@ -241,9 +249,12 @@ def retrieval_stage(
     del points
     gc.collect()
     count = min(args.keyframes, len(descriptors))  # faiss refuses more than the map has
-    for kind in kinds:
+    for spec in kinds:
+        kind, precision = faiss_spec(spec)
         nlist = max(1, round(len(descriptors) ** 0.5))
-        index = FaissIndex(kind=kind, nlist=nlist, nprobe=min(args.nprobe, nlist))
+        index = FaissIndex(
+            kind=kind, precision=precision, nlist=nlist, nprobe=min(args.nprobe, nlist)
+        )
         start = time.perf_counter()
         index.fit(descriptors)
         fit = time.perf_counter() - start
@@ -251,14 +262,14 @@ def retrieval_stage(
             lambda d, index=index: index.neighbours(d[None], count)[1][0].tolist(), asked
         )
         shared = [len(set(f) & set(e)) / len(e) for f, e in zip(found, exact, strict=True)]
-        rows[f"faiss {kind}"] = {
+        rows[f"faiss {spec}"] = {
             "fit_s": fit,
             "median_ms": 1000 * float(np.median(seconds)),
             "recall_of_exhaustive_keyframes": float(np.mean(shared)),
         }
         if kind == "ivf":
-            rows[f"faiss {kind}"].update(nlist=nlist, nprobe=min(args.nprobe, nlist))
-        keyframes[f"faiss {kind}"], times[f"faiss {kind}"] = found, seconds
+            rows[f"faiss {spec}"].update(nlist=nlist, nprobe=min(args.nprobe, nlist))
+        keyframes[f"faiss {spec}"], times[f"faiss {spec}"] = found, seconds
         del index
         gc.collect()
     return rows, keyframes, times
@@ -521,6 +532,13 @@ def parse_arguments() -> argparse.Namespace:
         parser.error("sizes, counts, workers and --threads must be at least 1")
     if args.retrieval_dim <= THUMBNAIL_DIMENSIONS:
         parser.error(f"--retrieval-dim must exceed the {THUMBNAIL_DIMENSIONS}-d thumbnail")
+    for spec in args.faiss_kinds:
+        kind, precision = faiss_spec(spec)
+        if kind not in KINDS or precision not in PRECISIONS:
+            parser.error(
+                f"--faiss-kinds {spec!r}: give kind[:precision], kind one of {KINDS}, "
+                f"precision one of {PRECISIONS}"
+            )
     args.sizes = sorted(set(args.sizes))
     args.codes = list(dict.fromkeys([*args.codes, args.scale_code]))
     return args
