@@ -54,11 +54,12 @@ HEADER = [
     "network training (s)",
     "map / head fit (s)",
     "model file (MB)",
-    "ms per query",
+    "median ms per query (mean of seeds)",
 ]
 
 
 def spread_cell(stats: dict, digits: int) -> str:
+    """A median over seeds as `mean +- std`."""
     return f"{stats['mean']:.{digits}f} +- {stats['std']:.{digits}f}"
 
 
@@ -79,8 +80,9 @@ def cost_cells(costs: dict | None, method: str) -> tuple[list[str], dict]:
     if row is None:
         return ["-", "-", "-"], {}
     shared = row["network_trained_by"] != method
+    owner = row["network_trained_by"]
     network = (
-        f"(PoseNet's: {costs['rows'][row['network_trained_by']]['network_seconds']:.0f})"
+        f"({owner}'s: {costs['rows'][owner]['network_seconds']:.0f})"
         if shared
         else f"{row['network_seconds']:.0f}"
     )
@@ -96,6 +98,10 @@ def cost_cells(costs: dict | None, method: str) -> tuple[list[str], dict]:
 
 def split_table(name: str, run: Path, costs: dict | None) -> tuple[str, dict]:
     comparison = json.loads((run / "comparison.json").read_text())
+    if "seeds" not in comparison:
+        sys.exit(f"{run}: a compare run over several seeds (compare.seeds) expected")
+    if comparison["reference"] != "PoseNet":
+        sys.exit(f"{run}: rows paired against {comparison['reference']!r}, not PoseNet")
     seeds = comparison["seeds"]
     (scene, methods), *more = comparison["scenes"].items()
     if more:
@@ -109,7 +115,8 @@ def split_table(name: str, run: Path, costs: dict | None) -> tuple[str, dict]:
     for method in ranked:
         stats = methods[method]
         per_seed = [s[method] for s in summaries]
-        fell_back = [int(s.get("refine_fell_back", 0)) for s in per_seed]
+        # A row without a refiner has nothing to fall back from: "-", not "0".
+        fell_back = [s.get("refine_fell_back") for s in per_seed]
         ms = [1000 * s["median_seconds_per_query"] for s in per_seed]
         paired = stats.get("vs_reference")
         cells, cost = cost_cells(costs, method)
@@ -120,7 +127,7 @@ def split_table(name: str, run: Path, costs: dict | None) -> tuple[str, dict]:
                 spread_cell(stats["median_position_m"], 3),
                 spread_cell(stats["median_orientation_deg"], 2),
                 f"{100 * stats['within_0.05m_5deg']['mean']:.1f}%",
-                " ".join(str(n) for n in fell_back),
+                " ".join("-" if n is None else str(int(n)) for n in fell_back),
                 paired_cell(paired["position_m"], ".3f") if paired else "(reference)",
                 paired_cell(paired["orientation_deg"], ".2f") if paired else "(reference)",
                 *cells,
