@@ -4,7 +4,7 @@ conf/methods/families.yaml (docs/results/families.md).
 
 Each row is composed as `relocfw task=compare methods=families` composes it (the
 command line's overrides, then the row's), built with relocfw's own CLI functions
-(build_method, prepare_model, on_engine) and fitted on the map images, in an empty
+(method_rows, build_method, prepare_model, on_engine, fit_method) on the map images, in an empty
 cache folder, so nothing comes from an earlier run: the first row on a network
 trains it, and later rows on the same network find it in this run's cache (their
 network seconds are then the load's, and the table says which row trained it).
@@ -39,7 +39,9 @@ from omegaconf import OmegaConf
 
 from relocfw.app.engines import on_engine
 from relocfw.app.methods import build, build_method
+from relocfw.app.results import fit_method
 from relocfw.app.splits import load_split
+from relocfw.app.tasks.compare import method_rows
 from relocfw.app.training_runs import prepare_model
 from relocfw.app.validation_block import carve_validation
 from relocfw.model.model_file import save_model, stores_refiner
@@ -48,9 +50,9 @@ FAMILIES = Path(__file__).resolve().parents[1] / "conf" / "methods" / "families.
 
 
 def family_rows(path: Path) -> dict[str, list[str]]:
-    """The methods file's rows: name -> overrides."""
-    rows = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    return {str(name): [str(o) for o in overrides] for name, overrides in rows.items()}
+    """The methods file's rows, name -> overrides, read and checked as task=compare
+    reads compare.methods (old spellings rewritten)."""
+    return method_rows(OmegaConf.create({"compare": {"methods": OmegaConf.load(path)}}))
 
 
 def main() -> None:
@@ -96,7 +98,7 @@ def main() -> None:
                     cfg, method.relocalizer(device), checkpoint, device, train[1]
                 )
                 engined = time.perf_counter()
-                relocalizer.fit(train[1], [f.pose for f in train[0]], quiet=True, frames=train[0])
+                fit_method(name, relocalizer, train, quiet=True)
                 fitted = time.perf_counter()
                 model = save_model(
                     Path(scratch) / "model.relocfw",
