@@ -61,6 +61,13 @@ from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
+from relocfw.core.sensor_poses import (
+    colour_pose,
+    map_pose_to_colour,
+    pose_to_colour_state,
+    reference_pose,
+    stored_pose_to_colour,
+)
 from relocfw.core.standardise import ZScore, check_features
 from relocfw.core.values import Pose
 from relocfw.structure import (
@@ -268,11 +275,14 @@ class FeaturesRefiner(PoseRefiner):
             )
         self.zscore = ZScore().fit(check_features(descriptors))
         self.points = self.zscore(check_features(descriptors))
-        self.poses = [view.pose for view in views]
+        # The map is built, and queries solved, in the colour camera's poses; answers
+        # go back to the sensor the dataset's poses describe (relocfw.core.sensor_poses).
+        self.pose_to_colour = map_pose_to_colour(views, "refine=features")
+        self.poses = [colour_pose(view.pose, self.pose_to_colour) for view in views]
         map_views = [
             MapView(
                 image=view.image,
-                pose=view.pose,
+                pose=pose,
                 camera=view.camera,
                 depth_path=view.depth_path,
                 name=view.name,
@@ -280,7 +290,7 @@ class FeaturesRefiner(PoseRefiner):
                 depth_camera=view.depth_camera,
                 depth_to_colour=view.depth_to_colour,
             )
-            for view in views
+            for view, pose in zip(views, self.poses, strict=True)
         ]
 
         parameters = self.build_parameters(views)
@@ -352,6 +362,7 @@ class FeaturesRefiner(PoseRefiner):
             **self.zscore.state(),
             "keyframe_descriptors": torch.from_numpy(np.array(self.points, dtype=np.float64)),
             **options_state({key: getattr(self, key) for key in keys}),
+            **pose_to_colour_state(self.pose_to_colour),
         }
 
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
@@ -361,6 +372,7 @@ class FeaturesRefiner(PoseRefiner):
         structure = map_of_state(state, STATE_LABEL)
         keyframe_points, zscore = stored_keyframe_descriptors(state, len(structure))
         options = stored_options(state)
+        pose_to_colour = stored_pose_to_colour(state, STATE_LABEL)
         # Files written before these options matched every keypoint of a map whose
         # SIFT ran at full size; that is how they answer.
         options.setdefault("image_scale", 1.0)
@@ -369,6 +381,7 @@ class FeaturesRefiner(PoseRefiner):
         for key, value in options.items():
             setattr(self, key, value)
         self.structure = structure
+        self.pose_to_colour = pose_to_colour
         self.match_index = MatchIndex.of(structure, self.match_points_only)
         self.zscore = zscore
         self.points = keyframe_points
@@ -398,6 +411,8 @@ class FeaturesRefiner(PoseRefiner):
         """The `count` keyframes near `prior`; without one, by the query's descriptor."""
         count = min(self.count, len(self.poses))
         if prior is not None:
+            # The map's poses are the colour camera's; the prior is the dataset's sensor's.
+            prior = colour_pose(prior, self.pose_to_colour)
             return list(keyframes_by_pose(self.poses, prior, count))
         return keyframes_by_descriptor(self.zscore, self.points, query.descriptor, count)
 
@@ -455,5 +470,6 @@ class FeaturesRefiner(PoseRefiner):
         if not answer.success:
             found = Refined(query.network_pose, float(answer.inliers), True, seconds)
         else:
-            found = Refined(answer.pose, float(answer.inliers), False, seconds)
+            answered = reference_pose(answer.pose, self.pose_to_colour)
+            found = Refined(answered, float(answer.inliers), False, seconds)
         return found, answer.query_features

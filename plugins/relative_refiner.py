@@ -52,6 +52,13 @@ from relocfw.core.imaging import check_rgb_image
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.progress import Progress
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
+from relocfw.core.sensor_poses import (
+    colour_pose,
+    map_pose_to_colour,
+    pose_to_colour_state,
+    reference_pose,
+    stored_pose_to_colour,
+)
 from relocfw.core.standardise import ZScore, check_features
 from relocfw.core.values import Pose
 from relocfw.structure.features import extract_rootsift
@@ -101,9 +108,12 @@ def checked_options(options: dict) -> dict:
     return checked
 
 
-def keyframe_map(views: Sequence[MapImage], max_features: int, quiet: bool) -> StructureMap:
+def keyframe_map(
+    views: Sequence[MapImage], poses: Sequence[Pose], max_features: int, quiet: bool
+) -> StructureMap:
     """Each map image's RootSIFT features (on the stored uint8 grid, so the map in
-    memory matches as it will after a save), pose and camera; no 3-D point."""
+    memory matches as it will after a save), its colour camera's pose (`poses`) and
+    camera; no 3-D point."""
     features = []
     progress = Progress(len(views), "keyframe features", quiet=quiet)
     for view in views:
@@ -113,7 +123,7 @@ def keyframe_map(views: Sequence[MapImage], max_features: int, quiet: bool) -> S
     return StructureMap(
         features=tuple(features),
         points=tuple(np.full((len(f), 3), np.nan, dtype=np.float32) for f in features),
-        poses=tuple(view.pose for view in views),
+        poses=tuple(poses),
         cameras=tuple(view.camera for view in views),
         names=tuple(view.name for view in views),
         source="triangulated",
@@ -184,9 +194,13 @@ class RelativeRefiner(PoseRefiner):
             raise DataError(f"fit: {len(views)} map images but {len(features)} descriptors")
         camera = map_camera(views, "refine=relative")
         zscore = ZScore().fit(features)
+        # Rays leave the colour cameras that took the images; the answer goes back to
+        # the sensor the dataset's poses describe (relocfw.core.sensor_poses).
+        pose_to_colour = map_pose_to_colour(views, "refine=relative")
+        poses = [colour_pose(view.pose, pose_to_colour) for view in views]
 
         def build() -> StructureMap:
-            return keyframe_map(views, self.max_features, quiet)
+            return keyframe_map(views, poses, self.max_features, quiet)
 
         if self.cache_dir is None:
             structure = build()
@@ -196,13 +210,13 @@ class RelativeRefiner(PoseRefiner):
                 "max_features": self.max_features,
                 "images": [image_digest(v.image) for v in views],
             }
-            poses = [v.pose for v in views]
             key = structure_key([v.name for v in views], poses, [v.camera for v in views], settings)
             structure = cached_structure_map(self.cache_dir, key, build, quiet)
         self.camera = camera
         self.zscore = zscore
         self.points = zscore(features)
         self.structure = structure
+        self.pose_to_colour = pose_to_colour
 
     def refine(self, query: RefineQuery) -> Refined:
         if not hasattr(self, "structure"):
@@ -233,7 +247,8 @@ class RelativeRefiner(PoseRefiner):
         if located.position is None:
             pose, fell_back = query.network_pose, True
         else:
-            pose, fell_back = Pose(located.position, mean_rotation(used)), False
+            solved = Pose(located.position, mean_rotation(used))
+            pose, fell_back = reference_pose(solved, self.pose_to_colour), False
         seconds = {
             "retrieval": retrieved - started,
             "features": extracted - retrieved,
@@ -283,6 +298,7 @@ class RelativeRefiner(PoseRefiner):
                 key: torch.tensor(float(options[key]), dtype=torch.float64)
                 for key in NUMBER_OPTIONS
             },
+            **pose_to_colour_state(self.pose_to_colour),
         }
 
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
@@ -301,6 +317,7 @@ class RelativeRefiner(PoseRefiner):
                 f"{STATE_LABEL}: mean and std must hold {points.shape[1]} values, one per "
                 "descriptor dimension"
             )
+        pose_to_colour = stored_pose_to_colour(state, STATE_LABEL)
         options = self.options()
         try:
             for key in INTEGER_OPTIONS:
@@ -319,3 +336,4 @@ class RelativeRefiner(PoseRefiner):
         self.zscore = zscore
         self.points = points
         self.structure = structure
+        self.pose_to_colour = pose_to_colour

@@ -233,7 +233,8 @@ class Relocalizer:
         Args:
             frames: per image, what the refiner may use of it: objects with `name`,
                 `camera`, `depth_path`, `depth_units_per_metre`, `depth_camera`,
-                `depth_to_colour` and `observations` (a COLMAP model's 3-D points),
+                `depth_to_colour`, `pose_to_colour` and `observations` (a COLMAP
+                model's 3-D points),
                 such as the dataset's relocfw.data.frames.Frame (a missing attribute:
                 unknown).
 
@@ -408,6 +409,7 @@ def map_images(
             observations=getattr(frame, "observations", None),
             depth_camera=getattr(frame, "depth_camera", None),
             depth_to_colour=getattr(frame, "depth_to_colour", None),
+            pose_to_colour=getattr(frame, "pose_to_colour", None),
         )
         for i, (image, pose, frame) in enumerate(zip(images, poses, frames, strict=True))
     ]

@@ -52,6 +52,9 @@ class MapImage:
             for pixel with the image (relocfw.data.frames.Frame.depth_camera).
         depth_to_colour: [4, 4] rigid transform from depth to colour camera
             coordinates, with `depth_camera`; None: the identity.
+        pose_to_colour: [4, 4] rigid transform from the coordinates of the sensor
+            `pose` describes to the colour camera's (relocfw.core.sensor_poses);
+            None: `pose` is the colour camera's.
     """
 
     name: str
@@ -63,6 +66,7 @@ class MapImage:
     observations: PointObservations | None = None
     depth_camera: PinholeCamera | None = None
     depth_to_colour: np.ndarray | None = None
+    pose_to_colour: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

@@ -47,6 +47,10 @@ class Frame:
         depth_to_colour: [4, 4] rigid transform from depth-camera coordinates to
             colour-camera coordinates (relocfw.core.rigid.checked_rigid), used with
             `depth_camera`; None: the identity.
+        pose_to_colour: [4, 4] rigid transform from the coordinates of the sensor
+            that `pose` describes to the colour camera's (relocfw.core.sensor_poses);
+            None: `pose` is the colour camera's. 7-Scenes' poses are its depth
+            sensor's, so there it is `depth_to_colour`.
     """
 
     name: str
@@ -60,6 +64,7 @@ class Frame:
     observations: PointObservations | None = None
     depth_camera: PinholeCamera | None = None
     depth_to_colour: np.ndarray | None = None
+    pose_to_colour: np.ndarray | None = None
 
 
 def claim_frame_name(claimed: dict[str, Path], name: str, image: Path, source: str) -> None:

@@ -22,6 +22,16 @@ Each frame also gets its cameras and, where the folder has it, its depth map:
                 dataset root) holding `depth-registered.txt` declares its depth maps
                 registered already (relocfw's synthetic scene writes one): the file
                 is then the colour camera's and the frames get no depth camera.
+    pose_to_colour
+                which sensor the poses describe (`poses_of`): KinectFusion tracked the
+                depth sensor, so 7-Scenes' poses are its (default "depth"), and the
+                frames carry the depth-to-colour transform as `pose_to_colour`; the
+                structure refiners solve the colour camera and answer the depth
+                sensor's pose (relocfw.core.sensor_poses). "colour" takes the poses
+                as the colour camera's (what relocfw did before this option existed:
+                registered depth lifted with the depth sensor's pose). Registered
+                depth has no depth-to-colour transform, so there the poses are the
+                colour camera's.
 """
 
 from __future__ import annotations
@@ -48,6 +58,8 @@ SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
 SEQUENCE_LINE = re.compile(r"^sequence(\d+)$", re.IGNORECASE)
 # Which sensor camera-intrinsics.txt describes (dataset.intrinsics_for).
 SENSORS = ("depth", "colour")
+# Which sensor the pose files describe (dataset.poses_of).
+POSE_SENSORS = ("depth", "colour")
 # A file whose presence in a scene folder (or the dataset root) says that its depth
 # maps are registered to the colour images, pixel for pixel.
 REGISTERED_MARKER = "depth-registered.txt"
@@ -164,6 +176,16 @@ def checked_sensor(intrinsics_for: object) -> str:
     return str(intrinsics_for)
 
 
+def checked_pose_sensor(poses_of: object) -> str:
+    """`poses_of` when it names a sensor, else a ConfigError naming the key."""
+    if poses_of not in POSE_SENSORS:
+        raise ConfigError(
+            f"dataset.poses_of must be one of {', '.join(POSE_SENSORS)} (the sensor the "
+            f"pose files describe; 7-Scenes': depth), got {poses_of!r}"
+        )
+    return str(poses_of)
+
+
 def depth_registered(folder: Path) -> bool:
     """Whether the scene folder or the dataset root declares registered depth."""
     return any((place / REGISTERED_MARKER).is_file() for place in (folder, folder.parent))
@@ -255,6 +277,7 @@ def load_sevenscenes(
     on_error: OnError | None = None,
     sequences: Sequence[int] | None = None,
     intrinsics_for: str = "depth",
+    poses_of: str = "depth",
 ) -> list[Frame]:
     """Frames of one split, in sequence then frame order, with cameras and depth path.
 
@@ -267,14 +290,19 @@ def load_sevenscenes(
             out a validation block of the training sequences.
         intrinsics_for: the sensor camera-intrinsics.txt describes, "depth" or
             "colour" (scene_cameras).
+        poses_of: the sensor the pose files describe, "depth" (KinectFusion's, as
+            7-Scenes ships them) or "colour"; with "depth" and unregistered depth each
+            frame's `pose_to_colour` is the depth-to-colour transform.
 
     Raises:
         DataError: a missing split file, sequence folder or image set, a bad pose file
             (under on_error=fail), or a malformed camera-intrinsics.txt (always: it
             concerns every frame), each naming the file.
-        ConfigError: naming dataset.intrinsics_for when it is not depth or colour.
+        ConfigError: naming dataset.intrinsics_for or dataset.poses_of when it is not
+            depth or colour.
     """
     intrinsics_for = checked_sensor(intrinsics_for)
+    poses_of = checked_pose_sensor(poses_of)
     on_error = on_error or OnError()
     if split not in SPLIT_FILES:
         raise ConfigError(f"split must be 'train' or 'test', got {split!r}")
@@ -299,6 +327,7 @@ def load_sevenscenes(
         return []
     # One pair of cameras for the scene: 7-Scenes' frames all come from one Kinect.
     cameras = scene_cameras(folder, [image for _, image, _ in posed], intrinsics_for)
+    pose_to_colour = cameras.depth_to_colour if poses_of == "depth" else None
     frames = []
     for name, image, pose in posed:
         # The depth sensor's camera is the Kinect's whether or not this copy has
@@ -312,6 +341,7 @@ def load_sevenscenes(
                 depth_path=existing_depth(image),
                 depth_camera=cameras.depth,
                 depth_to_colour=cameras.depth_to_colour,
+                pose_to_colour=pose_to_colour,
             )
         )
     return frames
@@ -328,6 +358,8 @@ class SevenScenes:
         test_sequences: sequence numbers that replace TestSplit.txt (None: the file).
         intrinsics_for: the sensor camera-intrinsics.txt describes: "depth" (7-Scenes'
             own calibration, as its copies ship it) or "colour".
+        poses_of: the sensor the pose files describe: "depth" (KinectFusion's, as
+            7-Scenes ships them) or "colour" (see the module).
     """
 
     def __init__(
@@ -338,8 +370,10 @@ class SevenScenes:
         train_sequences: Sequence[int] | None = None,
         test_sequences: Sequence[int] | None = None,
         intrinsics_for: str = "depth",
+        poses_of: str = "depth",
     ) -> None:
         self.intrinsics_for = checked_sensor(intrinsics_for)
+        self.poses_of = checked_pose_sensor(poses_of)
         self.folder = scene_folder(root, scene)
         self.on_error = OnError(on_error)
         self.sequences = {
@@ -359,7 +393,13 @@ class SevenScenes:
 
     def frames(self, split: str) -> list[Frame]:
         return load_sevenscenes(
-            self.folder, None, split, self.on_error, self.sequences.get(split), self.intrinsics_for
+            self.folder,
+            None,
+            split,
+            self.on_error,
+            self.sequences.get(split),
+            self.intrinsics_for,
+            self.poses_of,
         )
 
     def split_source(self, split: str) -> str:

@@ -497,3 +497,26 @@ def test_every_shipped_methods_row_composes(methods, monkeypatch):
         for overrides in rows.values():
             row = compose("config", overrides=[f"methods={methods}", *overrides])
             assert wanted_engine(row, torch.device("cpu")) in ("torch", "onnx", "ncnn")
+
+
+def test_compare_rows_with_their_own_dataset_options_are_refused(tmp_path):
+    # Each scene's frames are loaded once, with the first row's dataset options: a
+    # row's own dataset.* would silently answer with the first row's frames.
+    folder = tmp_path / "mine" / "methods"
+    folder.mkdir(parents=True)
+    (folder / "poses.yaml").write_text(
+        "# @package compare.methods\n"
+        "PoseNet: [crop=centre]\n"
+        "Fewer queries: [crop=centre, dataset.test_frames=3]\n"
+    )
+    args = [
+        *TINY_OVERRIDES,
+        "task=compare",
+        "methods=poses",
+        f"hydra.searchpath=[file://{tmp_path / 'mine'}]",
+    ]
+    result = relocfw_here(args, tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.splitlines()[-1].startswith(
+        "error: compare rows 'PoseNet', 'Fewer queries' set different dataset.* options"
+    )

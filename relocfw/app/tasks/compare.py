@@ -8,6 +8,7 @@ methods group (conf/methods/*.yaml, or a user's own file). A row in the old spel
 
 from __future__ import annotations
 
+import json
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -180,6 +181,24 @@ def one_calibration(plans: Mapping[tuple, tuple[DictConfig, Any]]) -> None:
         )
 
 
+def one_dataset(plans: Mapping[tuple, tuple[DictConfig, Any]]) -> None:
+    """Refuse rows whose `dataset.*` options differ: each scene's frames are loaded
+    once, with the first row's options, and shared by every row, so a row's own
+    dataset.* override would silently do nothing."""
+    found: dict[Any, dict[str, str]] = {}
+    for (_, scene, name), (method_cfg, _) in plans.items():
+        options = json.dumps(OmegaConf.to_container(method_cfg.dataset, resolve=True), default=str)
+        found.setdefault(scene, {}).setdefault(options, name)
+    for names in found.values():
+        if len(names) > 1:
+            rows = ", ".join(repr(name) for name in names.values())
+            raise ConfigError(
+                f"compare rows {rows} set different dataset.* options; every row answers "
+                "the same frames, loaded once per scene: set dataset.* on the command line "
+                "(and run task=compare once per setting to compare them)"
+            )
+
+
 def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     """Every method of compare.methods on every scene, for every training seed.
 
@@ -202,6 +221,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         raise ConfigError(f"compare.round_robin must be true or false, got {round_robin!r}")
     plans, rows = plan(methods, scenes, seeds)
     one_calibration(plans)
+    one_dataset(plans)
     if round_robin:
         for (_, _, name), (method_cfg, _) in plans.items():
             # Checked before any row trains: taking turns times one query at a time.
