@@ -2,9 +2,10 @@
 
 A compare run pairs its own rows; this pairs a row of one run with a row of another
 (today's code against a change, both with the same trained models), from the per-seed
-results CSVs the runs wrote (`seed_N/results_<scene>.csv`). The seeds are those both
-runs have; a query missing from either side, or in another order, is an error, not a
-silently shorter test.
+results CSVs the runs wrote (`seed_N/results_<scene>.csv`; a run of one seed keeps
+`results_<scene>.csv` in its own folder, and pairs with another run of one seed). The
+seeds are those both runs have; a query missing from either side, or in another
+order, is an error, not a silently shorter test.
 
     python benchmarks/paired_runs.py --out benchmarks/results/x.json \
         NEW_RUN:"Structure RGB-only"=OLD_RUN:"Structure RGB-only" ...
@@ -27,18 +28,31 @@ ERRORS = {"position_m": "position_error_m", "orientation_deg": "orientation_erro
 WITHIN = (0.05, 5.0)  # the 5 cm / 5 deg share reported beside the test
 
 
+# The "seed" of a run of one training seed, whose results lie in the run's own folder.
+ONE_SEED = -1
+
+
 def run_seeds(run: Path) -> set[int]:
-    """The training seeds a compare run holds results for."""
+    """The training seeds a compare run holds results for ({ONE_SEED} for a run of one
+    seed)."""
     if not run.is_dir():
         raise DataError(f"{run}: not a compare run folder")
-    return {int(path.name.split("_")[1]) for path in run.glob("seed_*") if path.is_dir()}
+    seeds = {int(path.name.split("_")[1]) for path in run.glob("seed_*") if path.is_dir()}
+    if not seeds and any(run.glob("results_*.csv")):
+        return {ONE_SEED}
+    return seeds
+
+
+def seed_folder(run: Path, seed: int) -> Path:
+    return run if seed == ONE_SEED else run / f"seed_{seed}"
 
 
 def row_results(run: Path, seed: int, method: str) -> tuple[list[str], np.ndarray, np.ndarray]:
     """Frames, [N, 2] errors and the fell-back flags of one row of one seed."""
-    files = sorted((run / f"seed_{seed}").glob("results_*.csv"))
+    folder = seed_folder(run, seed)
+    files = sorted(folder.glob("results_*.csv"))
     if len(files) != 1:
-        raise DataError(f"{run / f'seed_{seed}'}: expected one results_*.csv, found {len(files)}")
+        raise DataError(f"{folder}: expected one results_*.csv, found {len(files)}")
     frames, errors, fell_back = [], [], []
     with files[0].open(newline="") as handle:
         for record in csv.DictReader(handle):

@@ -50,6 +50,13 @@ from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import check_rgb_image
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
+from relocfw.core.sensor_poses import (
+    in_colour_poses,
+    map_pose_to_colour,
+    pose_to_colour_state,
+    reference_pose,
+    stored_pose_to_colour,
+)
 from relocfw.plugins.lite_cell_encoder import ENCODER_CHANNELS, ENCODERS, LiteCellEncoder
 from relocfw.structure.absolute_pose import solve_absolute_pose
 from relocfw.structure.refiner_inputs import (
@@ -165,6 +172,7 @@ class SceneCoordinatesRefiner(PoseRefiner):
         except ConfigError as error:
             raise ConfigError(f"{LABEL} encodes with EfficientNet-Lite0: {error}") from error
         self.head: SceneCoordinateHead | None = None
+        self.pose_to_colour: np.ndarray | None = None  # set by fit / load_state
         self.camera = None
         self.used_depth = False
         self.fit_seconds: dict[str, float] = {}
@@ -194,6 +202,12 @@ class SceneCoordinatesRefiner(PoseRefiner):
         if len(views) == 0:
             raise DataError(f"{LABEL}: the map has no image")
         self.camera = map_camera(views, LABEL)
+        # Scene coordinates are learnt, and queries solved, in the colour camera's
+        # poses; answers go back to the sensor the dataset's poses describe
+        # (relocfw.core.sensor_poses; None, the identity, unless dataset.poses_of says).
+        pose_to_colour = map_pose_to_colour(views, LABEL)
+        views = in_colour_poses(views, pose_to_colour)
+        self.pose_to_colour = pose_to_colour
         use_depth = self.uses_depth(views)
         started = time.perf_counter()
         cached = self.cached_path(views, use_depth)
@@ -213,6 +227,7 @@ class SceneCoordinatesRefiner(PoseRefiner):
             self.ransac_min_iterations = asked["ransac_min_iterations"]
             self.max_error_px = asked["max_error_px"]
             self.camera = map_camera(views, LABEL)
+            self.pose_to_colour = pose_to_colour
             self.fit_seconds = {"cache": time.perf_counter() - started}
             return
         buffer = build_buffer(views, self.encoder, self.buffer_settings(), use_depth, quiet)
@@ -330,7 +345,8 @@ class SceneCoordinatesRefiner(PoseRefiner):
         seconds["solve"] = time.perf_counter() - solving
         if not answer.success:
             return Refined(query.network_pose, 0.0, True, seconds)
-        return Refined(answer.pose, float(answer.inliers), False, seconds)
+        answered = reference_pose(answer.pose, self.pose_to_colour)
+        return Refined(answered, float(answer.inliers), False, seconds)
 
     # -- model files -----------------------------------------------------------------
 
@@ -340,7 +356,10 @@ class SceneCoordinatesRefiner(PoseRefiner):
         which is the packaged ImageNet one, rebuilt on loading."""
         if self.head is None:
             raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
-        return head_state(self.head, self.query_options(), self.camera)
+        return {
+            **head_state(self.head, self.query_options(), self.camera),
+            **pose_to_colour_state(self.pose_to_colour),
+        }
 
     def query_options(self) -> dict:
         return {
@@ -355,6 +374,7 @@ class SceneCoordinatesRefiner(PoseRefiner):
     def load_state(self, state: dict[str, torch.Tensor]) -> None:
         """What `state` returned; every tensor checked first, a fault one DataError."""
         head, options, camera = head_of_state(state, ENCODERS, ENCODER_CHANNELS)
+        pose_to_colour = stored_pose_to_colour(state, LABEL)
         encoder = ENCODERS[options["encoder"]]
         if encoder != self.encoder_choice:
             self.encoder = LiteCellEncoder(encoder)
@@ -367,3 +387,4 @@ class SceneCoordinatesRefiner(PoseRefiner):
         self.head_width, self.head_layers = head.width, head.layers
         self.camera = camera
         self.head = head
+        self.pose_to_colour = pose_to_colour

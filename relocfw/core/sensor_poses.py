@@ -22,6 +22,7 @@ poses are the colour camera's already.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -78,6 +79,14 @@ def map_pose_to_colour(views: Sequence[object], refiner: str) -> np.ndarray | No
                 "images must come from one camera rig"
             )
     return found
+
+
+def in_colour_poses(views: Sequence, pose_to_colour: np.ndarray | None) -> list:
+    """The map images (relocfw.core.refinement.MapImage) with their colour camera's
+    poses in place of the dataset's (the same objects where `pose_to_colour` is None)."""
+    if pose_to_colour is None:
+        return list(views)
+    return [replace(view, pose=colour_pose(view.pose, pose_to_colour)) for view in views]
 
 
 # The model-file key of a fitted refiner's transform (absent: the poses are the

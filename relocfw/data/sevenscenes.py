@@ -23,15 +23,15 @@ Each frame also gets its cameras and, where the folder has it, its depth map:
                 registered already (relocfw's synthetic scene writes one): the file
                 is then the colour camera's and the frames get no depth camera.
     pose_to_colour
-                which sensor the poses describe (`poses_of`): KinectFusion tracked the
-                depth sensor, so 7-Scenes' poses are its (default "depth"), and the
-                frames carry the depth-to-colour transform as `pose_to_colour`; the
-                structure refiners solve the colour camera and answer the depth
-                sensor's pose (relocfw.core.sensor_poses). "colour" takes the poses
-                as the colour camera's (what relocfw did before this option existed:
-                registered depth lifted with the depth sensor's pose). Registered
-                depth has no depth-to-colour transform, so there the poses are the
-                colour camera's.
+                which sensor the poses describe (`poses_of`). "colour" (the default)
+                takes them as the colour camera's: None. "depth" takes them as the
+                depth sensor's, which KinectFusion tracked: the frames then carry the
+                depth-to-colour transform, and the structure refiners solve the colour
+                camera and answer the depth sensor's pose (relocfw.core.sensor_poses).
+                On Red Kitchen "depth" made positions worse on a validation block
+                (docs/results/structure.md, "Which sensor the poses describe"), so it
+                is not the default. Registered depth has no depth-to-colour transform:
+                there the poses are always the colour camera's.
 """
 
 from __future__ import annotations
@@ -181,7 +181,7 @@ def checked_pose_sensor(poses_of: object) -> str:
     if poses_of not in POSE_SENSORS:
         raise ConfigError(
             f"dataset.poses_of must be one of {', '.join(POSE_SENSORS)} (the sensor the "
-            f"pose files describe; 7-Scenes': depth), got {poses_of!r}"
+            f"pose files describe), got {poses_of!r}"
         )
     return str(poses_of)
 
@@ -277,7 +277,7 @@ def load_sevenscenes(
     on_error: OnError | None = None,
     sequences: Sequence[int] | None = None,
     intrinsics_for: str = "depth",
-    poses_of: str = "depth",
+    poses_of: str = "colour",
 ) -> list[Frame]:
     """Frames of one split, in sequence then frame order, with cameras and depth path.
 
@@ -290,9 +290,9 @@ def load_sevenscenes(
             out a validation block of the training sequences.
         intrinsics_for: the sensor camera-intrinsics.txt describes, "depth" or
             "colour" (scene_cameras).
-        poses_of: the sensor the pose files describe, "depth" (KinectFusion's, as
-            7-Scenes ships them) or "colour"; with "depth" and unregistered depth each
-            frame's `pose_to_colour` is the depth-to-colour transform.
+        poses_of: the sensor the pose files describe, "colour" or "depth"; with
+            "depth" and unregistered depth each frame's `pose_to_colour` is the
+            depth-to-colour transform (see the module).
 
     Raises:
         DataError: a missing split file, sequence folder or image set, a bad pose file
@@ -358,8 +358,8 @@ class SevenScenes:
         test_sequences: sequence numbers that replace TestSplit.txt (None: the file).
         intrinsics_for: the sensor camera-intrinsics.txt describes: "depth" (7-Scenes'
             own calibration, as its copies ship it) or "colour".
-        poses_of: the sensor the pose files describe: "depth" (KinectFusion's, as
-            7-Scenes ships them) or "colour" (see the module).
+        poses_of: the sensor the pose files describe: "colour" or "depth" (see the
+            module).
     """
 
     def __init__(
@@ -370,7 +370,7 @@ class SevenScenes:
         train_sequences: Sequence[int] | None = None,
         test_sequences: Sequence[int] | None = None,
         intrinsics_for: str = "depth",
-        poses_of: str = "depth",
+        poses_of: str = "colour",
     ) -> None:
         self.intrinsics_for = checked_sensor(intrinsics_for)
         self.poses_of = checked_pose_sensor(poses_of)

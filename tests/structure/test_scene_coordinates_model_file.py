@@ -122,3 +122,24 @@ def test_a_damaged_head_is_one_data_error_naming_refine(saved, tmp_path, how, me
     with pytest.raises(DataError, match=pattern) as caught:
         load_model(tmp_path / "damaged.relocfw")
     assert "\n" not in str(caught.value)
+
+
+def test_a_rig_transform_is_kept_and_answers_go_back_to_the_dataset_sensor(saved):
+    # dataset.poses_of=depth: the head solves the colour camera and the answer is the
+    # depth sensor's; a model file keeps the transform, so a loaded one answers alike.
+    from relocfw.core.refinement import RefineQuery
+    from relocfw.core.sensor_poses import reference_pose
+    from tests.structure.test_registered_depth import depth_to_colour
+
+    refiner = load_model(saved["path"]).refiner
+    query = RefineQuery(saved["queries"][0], saved["expected"][0].pose, np.zeros(16))
+    plain = refiner.refine(query)
+    assert not plain.fell_back
+    refiner.pose_to_colour = depth_to_colour()
+    moved = refiner.refine(query)
+    expected = reference_pose(plain.pose, depth_to_colour())
+    np.testing.assert_allclose(moved.pose.position, expected.position, atol=1e-9)
+    assert np.linalg.norm(moved.pose.position - plain.pose.position) == pytest.approx(0.025)
+    again = SceneCoordinatesRefiner(**QUICK)
+    again.load_state(refiner.state())
+    np.testing.assert_array_equal(again.pose_to_colour, depth_to_colour())

@@ -1,6 +1,6 @@
-"""Poses of another sensor than the colour camera (relocfw.core.sensor_poses): 7-Scenes'
-poses are its depth sensor's, so the structure refiners build and solve in the colour
-camera's poses and answer the depth sensor's.
+"""Poses of another sensor than the colour camera (relocfw.core.sensor_poses): with
+dataset.poses_of=depth (7-Scenes' poses taken as its depth sensor's) the structure
+refiners build and solve in the colour camera's poses and answer the depth sensor's.
 
 The world is tests.structure.textured_world seen by a Kinect-like rig (the depth sensor
 2.5 cm along x of the colour camera, turned by 1 degree, with a longer focal length);
@@ -166,13 +166,13 @@ def raw_kinect_scene(tiny_scene, tmp_path):
     return copy
 
 
-def test_7scenes_poses_are_the_depth_sensors_unless_told(raw_kinect_scene, tiny_scene):
-    depth_side = load_sevenscenes(raw_kinect_scene, None, "test")[0]
+def test_7scenes_poses_are_the_colour_cameras_unless_told(raw_kinect_scene, tiny_scene):
+    assert load_sevenscenes(raw_kinect_scene, None, "test")[0].pose_to_colour is None
+    depth_side = load_sevenscenes(raw_kinect_scene, None, "test", poses_of="depth")[0]
     assert depth_side.pose_to_colour is SEVENSCENES_DEPTH_TO_COLOUR
-    colour_side = load_sevenscenes(raw_kinect_scene, None, "test", poses_of="colour")[0]
-    assert colour_side.pose_to_colour is None
     # Registered depth has no depth-to-colour transform: its poses are the colour's.
-    assert load_sevenscenes(tiny_scene, None, "test")[0].pose_to_colour is None
+    registered = load_sevenscenes(tiny_scene, None, "test", poses_of="depth")[0]
+    assert registered.pose_to_colour is None
     with pytest.raises(ConfigError, match="dataset.poses_of must be one of depth, colour"):
         SevenScenes(str(raw_kinect_scene), None, poses_of="rgb")
 
