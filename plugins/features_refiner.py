@@ -45,6 +45,18 @@ its own units, as its poses, so they serve at any scale.
 Model files (format 5) keep the fitted refiner whole (`state` / `load_state`: the map's
 structure as flat arrays, relocfw.structure.map_state, the keyframe descriptors and
 the query options), so a loaded model needs no map image, depth file or cache.
+
+Large maps (`map_store=compact`, `keyframe_search=faiss`). A StructureMap holds every
+map image's float32 descriptors in memory; with map_store=compact the map, built or
+read from the structure cache as always, is written once as a compact map folder
+beside its cache entry (relocfw.structure.compact_cache: uint8 grid descriptors, the
+exact ones, and float16 camera-frame points, only keypoints with a 3-D point),
+dropped from memory, and each query reads its keyframes from that folder, memory-
+mapped (CompactMap.keyframe_map). Matching only keypoints with a point is then the
+only choice (match_points_only=true), and the folder needs cache_dir. A model file
+stores the compact arrays themselves (relocfw.structure.compact_state), so it stays
+one self-contained file. keyframe_search=faiss retrieves keyframes by descriptor with
+faiss's exact flat search (relocfw.structure.faiss_keyframes) instead of numpy's.
 """
 
 from __future__ import annotations
@@ -58,7 +70,7 @@ import numpy as np
 import torch
 
 from relocfw.core.camera import PinholeCamera
-from relocfw.core.errors import ConfigError
+from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
 from relocfw.core.sensor_poses import (
@@ -81,6 +93,10 @@ from relocfw.structure import (
 )
 from relocfw.structure.absolute_pose import POSELIB_MIN_ITERATIONS
 from relocfw.structure.colmap_structure import checked_radius
+from relocfw.structure.compact_cache import cached_compact_map
+from relocfw.structure.compact_map import CompactMap
+from relocfw.structure.compact_state import compact_of_state, compact_state, holds_compact_map
+from relocfw.structure.faiss_keyframes import FaissKeyframeSearch, imported_faiss
 from relocfw.structure.features import LocalFeatures, checked_image_scale
 from relocfw.structure.map_state import map_of_state, map_state
 from relocfw.structure.match_index import MatchIndex
@@ -98,6 +114,7 @@ from relocfw.structure.refiner_state import (
     STATE_INTEGERS,
     STATE_LABEL,
     STATE_NUMBERS,
+    checked_choice,
     checked_keyframes_choice,
     checked_min_iterations,
     options_state,
@@ -147,6 +164,11 @@ class FeaturesRefiner(PoseRefiner):
             point (relocfw.structure.match_index); false: against every keypoint.
         ransac_min_iterations: the solve's fewest RANSAC rounds (PoseLib's 1000 by
             default; more stop by its confidence rule).
+        map_store: "memory" (the StructureMap) or "compact" (written once beside the
+            structure cache and read memory-mapped, keyframe by keyframe; needs
+            cache_dir and match_points_only; see the module).
+        keyframe_search: "numpy" or "faiss" (exact flat search; relocfw[faiss]): how
+            keyframes are found by descriptor.
     """
 
     def __init__(
@@ -166,6 +188,8 @@ class FeaturesRefiner(PoseRefiner):
         image_scale: float = 1.0,
         match_points_only: bool = True,
         ransac_min_iterations: int = POSELIB_MIN_ITERATIONS,
+        map_store: str = "memory",
+        keyframe_search: str = "numpy",
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -198,7 +222,34 @@ class FeaturesRefiner(PoseRefiner):
             )
         self.match_points_only = match_points_only
         self.ransac_min_iterations = checked_min_iterations(ransac_min_iterations)
+        self.map_store = checked_choice("map_store", map_store)
+        self.check_map_store()
+        self.keyframe_search = checked_choice("keyframe_search", keyframe_search)
+        if self.keyframe_search == "faiss":
+            imported_faiss()  # a missing faiss is said now, not after training
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
+        # The fitted map: a StructureMap (map_store=memory) or a CompactMap (compact).
+        self.structure: StructureMap | None = None
+        self.compact: CompactMap | None = None
+        self.skipped: tuple = ()
+        self.keyframe_index: FaissKeyframeSearch | None = None
+
+    def check_map_store(self) -> None:
+        """A ConfigError where map_store=compact cannot be: without match_points_only
+        (the compact map has no keypoint without a point) or without cache_dir (its
+        folder goes beside the structure cache)."""
+        if self.map_store != "compact":
+            return
+        if not self.match_points_only:
+            raise ConfigError(
+                "refine.map_store=compact keeps only the map keypoints that have a 3-D "
+                "point, so it needs refine.match_points_only=true (got false)"
+            )
+        if self.cache_dir is None:
+            raise ConfigError(
+                "refine.map_store=compact writes the map as a folder beside the structure "
+                "cache, so it needs a cache_dir (refine.cache_dir is null)"
+            )
 
     def source_for(self, frames: Sequence[object]) -> str:
         """The builder the map gets: refine.structure, except that structure=depth on
@@ -263,6 +314,7 @@ class FeaturesRefiner(PoseRefiner):
 
     def fit(self, views: Sequence[MapImage], descriptors: np.ndarray, quiet: bool = True) -> None:
         quiet = quiet or self.quiet
+        self.check_map_store()  # again: load_state may have set the store of a file
         self.tracked.clear()  # poses of another map's frames
         self.camera = map_camera(views)
         source = self.check_source(views, depth_files=False)
@@ -315,8 +367,9 @@ class FeaturesRefiner(PoseRefiner):
                 map_views, self.max_features, quiet=quiet, image_scale=scale, **parameters
             )
 
+        self.structure, self.compact, self.match_index = None, None, None
         if self.cache_dir is None:
-            self.structure = build()
+            structure = build()
         else:
             key = structure_key(
                 [v.name for v in views],
@@ -325,9 +378,9 @@ class FeaturesRefiner(PoseRefiner):
                 self.settings(views, parameters),
                 [(v.depth_camera, v.depth_to_colour) for v in views],
             )
-            self.structure = cached_structure_map(self.cache_dir, key, build, quiet)
-        self.match_index = MatchIndex.of(self.structure, self.match_points_only)
-        if source != "triangulated" and not self.structure.point_counts().any():
+            structure = cached_structure_map(self.cache_dir, key, build, quiet)
+        self.skipped = tuple(structure.skipped_views)
+        if source != "triangulated" and not structure.point_counts().any():
             # Every query would fall back: a configuration that cannot work.
             if source == "colmap":
                 raise ConfigError(
@@ -341,24 +394,50 @@ class FeaturesRefiner(PoseRefiner):
                 f"images (first: {self.skipped_views[0].name}: "
                 f"{self.skipped_views[0].reason}); {NO_DEPTH_HINT}"
             )
+        if self.map_store == "compact":
+            # Only the folder's mapped arrays stay: the StructureMap is dropped here.
+            self.compact = cached_compact_map(self.cache_dir, key, structure, quiet)
+        else:
+            self.structure = structure
+            self.match_index = MatchIndex.of(structure, self.match_points_only)
+        self.keyframe_index = self.keyframe_search_of(self.points)
+
+    def keyframe_search_of(self, points: np.ndarray) -> FaissKeyframeSearch | None:
+        """The faiss search over the z-scored map descriptors (keyframe_search=faiss);
+        None: numpy's, over `self.points` itself."""
+        return FaissKeyframeSearch(points) if self.keyframe_search == "faiss" else None
 
     @property
     def skipped_views(self) -> tuple:
         """The map images that gave no 3-D point (name and reason), for reports."""
-        structure = getattr(self, "structure", None)
-        return tuple(structure.skipped_views) if structure is not None else ()
+        return self.skipped
+
+    def check_fitted(self) -> None:
+        """A ConfigError unless a map is fitted or loaded."""
+        if self.structure is None and self.compact is None:
+            raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
 
     def state(self) -> dict[str, torch.Tensor]:
         """Everything a query uses, as plain tensors (relocfw.structure.map_state: every
         map image's uint8 descriptors, keypoints, the 3-D points of the keypoints that
-        have one, poses and cameras), plus the standardisation and the z-scored map
-        descriptors that keyframes are retrieved by, and the query options. A refiner
-        loaded from it needs no map image, depth file or cache."""
-        if not hasattr(self, "structure"):
-            raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
-        keys = ("keyframes", "match_points_only", *STATE_INTEGERS, *STATE_NUMBERS)
+        have one, poses and cameras; with map_store=compact the compact map's own
+        arrays instead, relocfw.structure.compact_state), plus the standardisation and
+        the z-scored map descriptors that keyframes are retrieved by, and the query
+        options. A refiner loaded from it needs no map image, depth file or cache."""
+        self.check_fitted()
+        keys = (
+            "keyframes",
+            "map_store",
+            "keyframe_search",
+            "match_points_only",
+            *STATE_INTEGERS,
+            *STATE_NUMBERS,
+        )
+        stored_map = map_state(self.structure) if self.compact is None else {}
+        if self.compact is not None:
+            stored_map = compact_state(self.compact)
         return {
-            **map_state(self.structure),
+            **stored_map,
             **self.zscore.state(),
             "keyframe_descriptors": torch.from_numpy(np.array(self.points, dtype=np.float64)),
             **options_state({key: getattr(self, key) for key in keys}),
@@ -369,26 +448,55 @@ class FeaturesRefiner(PoseRefiner):
         """What `state` returned: the refiner is then fitted. Every tensor is checked
         before anything is kept (a model file is data from anyone); a fault is one
         DataError naming the tensor."""
-        structure = map_of_state(state, STATE_LABEL)
-        keyframe_points, zscore = stored_keyframe_descriptors(state, len(structure))
         options = stored_options(state)
-        pose_to_colour = stored_pose_to_colour(state, STATE_LABEL)
         # Files written before these options matched every keypoint of a map whose
-        # SIFT ran at full size; that is how they answer.
+        # SIFT ran at full size, held in memory, keyframes searched with numpy; that
+        # is how they answer.
         options.setdefault("image_scale", 1.0)
         options.setdefault("match_points_only", False)
         options.setdefault("ransac_min_iterations", POSELIB_MIN_ITERATIONS)
+        options.setdefault("map_store", "memory")
+        options.setdefault("keyframe_search", "numpy")
+        structure, compact = None, None
+        if options["map_store"] == "compact":
+            if not options["match_points_only"]:
+                raise DataError(
+                    f"{STATE_LABEL}: match_points_only must be 1 with map_store compact "
+                    "(a compact map keeps only keypoints with a 3-D point)"
+                )
+            compact = compact_of_state(state, STATE_LABEL)
+            count, source = len(compact), compact.source
+            poses = [compact.pose(i) for i in range(count)]
+            cameras = {tuple(row) for row in compact.cameras.tolist()}
+            camera = compact.camera(0) if len(cameras) == 1 and count else None
+        else:
+            if holds_compact_map(state):
+                raise DataError(
+                    f"{STATE_LABEL}: compact_ tensors belong to map_store compact, and "
+                    "map_store is memory"
+                )
+            structure = map_of_state(state, STATE_LABEL)
+            count, source, poses = len(structure), structure.source, list(structure.poses)
+            distinct = set(structure.cameras)
+            camera = distinct.pop() if len(distinct) == 1 else None
+        keyframe_points, zscore = stored_keyframe_descriptors(state, count)
+        pose_to_colour = stored_pose_to_colour(state, STATE_LABEL)
+        if options["keyframe_search"] == "faiss":
+            imported_faiss()  # before anything is kept
         for key, value in options.items():
             setattr(self, key, value)
-        self.structure = structure
+        self.structure, self.compact = structure, compact
+        self.skipped = ()  # a model file keeps no skipped views (a query reads none)
         self.pose_to_colour = pose_to_colour
-        self.match_index = MatchIndex.of(structure, self.match_points_only)
+        self.match_index = None
+        if structure is not None:
+            self.match_index = MatchIndex.of(structure, self.match_points_only)
         self.zscore = zscore
         self.points = keyframe_points
-        self.poses = list(structure.poses)
-        cameras = set(structure.cameras)
-        self.camera = cameras.pop() if len(cameras) == 1 else None
-        self.structure_source = structure.source
+        self.keyframe_index = self.keyframe_search_of(keyframe_points)
+        self.poses = poses
+        self.camera = camera
+        self.structure_source = source
         self.tracked.clear()
 
     def reset(self) -> None:
@@ -414,11 +522,12 @@ class FeaturesRefiner(PoseRefiner):
             # The map's poses are the colour camera's; the prior is the dataset's sensor's.
             prior = colour_pose(prior, self.pose_to_colour)
             return list(keyframes_by_pose(self.poses, prior, count))
+        if self.keyframe_index is not None:
+            return self.keyframe_index.nearest(self.zscore, query.descriptor, count)
         return keyframes_by_descriptor(self.zscore, self.points, query.descriptor, count)
 
     def refine(self, query: RefineQuery) -> Refined:
-        if not hasattr(self, "structure"):
-            raise ConfigError("the refiner is not fitted: fit the Relocalizer's map first")
+        self.check_fitted()
         camera = query_camera("refine=features", query.camera, self.camera)
         if self.keyframes == "pose" and not query.network_pose.is_finite:
             # No map image is near a NaN pose; the network's answer stands, flagged.
@@ -452,8 +561,15 @@ class FeaturesRefiner(PoseRefiner):
         started = time.perf_counter()
         keyframes = self.keyframes_near(query, prior)
         retrieval = time.perf_counter() - started
+        structure, match_index = self.structure, self.match_index
+        if self.compact is not None:
+            # Just the keyframes, read from the mapped folder (row k: keyframes[k]); all
+            # their keypoints have a point, so matching them all is match_points_only.
+            keyframes = list(dict.fromkeys(keyframes))  # repeats dropped, as below
+            structure = self.compact.keyframe_map(keyframes)
+            keyframes, match_index = list(range(len(keyframes))), None
         answer = localize_against(
-            self.structure,
+            structure,
             query.image,
             camera,
             keyframes,
@@ -463,7 +579,7 @@ class FeaturesRefiner(PoseRefiner):
             min_inliers=self.min_inliers,
             query_features=features,
             image_scale=self.image_scale,
-            match_index=self.match_index,
+            match_index=match_index,
             min_iterations=self.ransac_min_iterations,
         )
         seconds = {"retrieval": retrieval, **answer.seconds}

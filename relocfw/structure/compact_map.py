@@ -49,12 +49,17 @@ Opening checks the small arrays fully (offsets, poses, cameras, names) and the l
 ones by shape, dtype and size; reading 10^8 rows to check them would defeat the
 layout, so each image's points are checked when the image is read. Any fault is one
 DataError naming the file.
+
+`CompactMap.of_arrays` gives the same map over arrays in memory (a model file's
+tensors, relocfw.structure.compact_state) with the same checks, each fault naming
+the array as the caller spells it; there the points are checked whole at once, as
+they are already in memory.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -81,17 +86,27 @@ class CompactMap:
     """A compact structure map, opened memory-mapped (`CompactMap.open`).
 
     Attributes:
-        folder: the map's folder.
+        folder: the map's folder; None for a map over arrays in memory (`of_arrays`).
         source: how its points were made (StructureMap.source).
         codec: the descriptor code (relocfw.structure.descriptor_codes).
         offsets: [M + 1] int64, in memory.
         codes, points: the [T, B] and [T, 3] arrays, memory-mapped.
         poses, cameras: [M, 7] and [M, 6] float64, in memory.
         names: [M] UTF-8 bytes, in memory.
+        label: what messages put before an array's name, for a map in memory
+            (`of_arrays`: "<label>: <prefix>").
     """
 
-    def __init__(self, folder: Path, source: str, codec: DescriptorCodec, arrays: dict) -> None:
+    def __init__(
+        self,
+        folder: Path | None,
+        source: str,
+        codec: DescriptorCodec,
+        arrays: dict,
+        label: str = "compact map: ",
+    ) -> None:
         self.folder = folder
+        self.label = label
         self.source = source
         self.codec = codec
         self.offsets = arrays["offsets"]
@@ -117,15 +132,71 @@ class CompactMap:
         if meta["codes"] == PQ:
             codec = DescriptorCodec(np.array(load_array(folder, "centres", meta)))
         arrays = {name: load_array(folder, name, meta) for name in ARRAY_FILES}
-        check_arrays(folder, arrays, meta, codec)
+        check_arrays(arrays, meta, codec, lambda name: str(folder / f"{name}.npy"))
         return cls(folder, meta["source"], codec, arrays)
+
+    @classmethod
+    def of_arrays(
+        cls,
+        arrays: dict[str, np.ndarray],
+        meta: dict,
+        centres: np.ndarray | None = None,
+        label: str = "compact map",
+        prefix: str = "",
+    ) -> CompactMap:
+        """The map over arrays in memory: one per ARRAY_FILES name, as the files hold
+        them, and `meta` as map.json holds it (without file_bytes: there are no files).
+
+        Used where a map travels inside another file (a model file's tensors), so the
+        arrays are data from anyone: every check `open` makes is made here, the points
+        whole (they are in memory already, so the per-image check `open` defers costs
+        nothing to do now).
+
+        Args:
+            arrays: offsets, codes, points, poses, cameras and names.
+            meta: kind, format, source, images, rows, codes, code_bytes, point_dtype.
+            centres: a product quantiser's centres (meta codes "pq"), else None.
+            label: how messages name the arrays' owner.
+            prefix: put before each array's name in messages ("<label>: <prefix><name>":
+                the key the caller stores it under).
+
+        Raises:
+            DataError: naming the array (or meta key) that is missing or does not fit.
+        """
+        checked_meta(meta, f"{label}: {prefix}meta", needs_file_bytes=False)
+        if (meta["codes"] == PQ) != (centres is not None):
+            raise DataError(
+                f"{label}: {prefix}centres must be given exactly when the codes are {PQ}"
+            )
+        try:
+            codec = DescriptorCodec(None if centres is None else np.array(centres))
+        except DataError as error:
+            raise DataError(f"{label}: {prefix}centres: {error}") from None
+        if codec.code_bytes != meta["code_bytes"]:
+            raise DataError(
+                f"{label}: {prefix}code_bytes is {meta['code_bytes']}, the codec's "
+                f"{codec.code_bytes}"
+            )
+        missing = [name for name in ARRAY_FILES if not isinstance(arrays.get(name), np.ndarray)]
+        if missing:
+            raise DataError(f"{label}: {prefix}{missing[0]} must be an array")
+        arrays = {name: arrays[name] for name in ARRAY_FILES}
+        check_arrays(arrays, meta, codec, lambda name: f"{label}: {prefix}{name}")
+        points = arrays["points"]
+        if not (np.isfinite(points).all() and (points[:, 2] > 0).all()):
+            raise DataError(
+                f"{label}: {prefix}points hold values that are not finite or not in front "
+                "of their camera"
+            )
+        return cls(None, meta["source"], codec, arrays, f"{label}: {prefix}")
 
     def __len__(self) -> int:
         return len(self.offsets) - 1
 
     def __repr__(self) -> str:
+        where = self.folder if self.folder is not None else "in memory"
         return (
-            f"CompactMap({self.folder}, {len(self)} images, {len(self.codes)} points, "
+            f"CompactMap({where}, {len(self)} images, {len(self.codes)} points, "
             f"{self.codec.kind} {self.codec.code_bytes} B, {self.points.dtype})"
         )
 
@@ -163,10 +234,17 @@ class CompactMap:
         points = np.asarray(self.points[self.rows(index)], dtype=np.float32)
         if not (np.isfinite(points).all() and (points[:, 2] > 0).all()):
             raise DataError(
-                f"{self.folder / 'points.npy'}: image {index} has points that are not "
+                f"{self.array_name('points')}: image {index} has points that are not "
                 "finite or not in front of its camera (a damaged map)"
             )
         return points
+
+    def array_name(self, name: str) -> str:
+        """How a message names one of the map's arrays: its file, or (in memory) its
+        label and name."""
+        if self.folder is None:
+            return f"{self.label}{name}"
+        return str(self.folder / f"{name}.npy")
 
     def features(self, index: int) -> LocalFeatures:
         """Image `index`'s LocalFeatures: decoded descriptors, and its points projected
@@ -201,7 +279,9 @@ class CompactMap:
         )
 
     def file_bytes(self) -> int:
-        """The folder's size on disk: every file of the map."""
+        """The folder's size on disk: every file of the map (0 in memory)."""
+        if self.folder is None:
+            return 0
         return sum(path.stat().st_size for path in self.folder.iterdir() if path.is_file())
 
     def resident_bytes(self) -> int:
@@ -254,22 +334,28 @@ def read_meta(folder: Path) -> dict:
         meta = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
         raise DataError(f"cannot read {path} (truncated or corrupt: {error})") from None
+    return checked_meta(meta, str(path))
+
+
+def checked_meta(meta: object, where: str, needs_file_bytes: bool = True) -> dict:
+    """`meta` (map.json's mapping) when every key holds what a map's can; DataError
+    naming `where` and the key."""
     if not isinstance(meta, dict) or meta.get("kind") != COMPACT_KIND:
-        raise DataError(f"{path} is not a {COMPACT_KIND} file")
+        raise DataError(f"{where} is not a {COMPACT_KIND} file")
     if meta.get("format") != COMPACT_FORMAT:
         raise DataError(
-            f"{path}: format {meta.get('format')!r}; this relocfw reads format {COMPACT_FORMAT}"
+            f"{where}: format {meta.get('format')!r}; this relocfw reads format {COMPACT_FORMAT}"
         )
     wanted = {"source": SOURCES, "codes": ("grid", PQ), "point_dtype": POINT_DTYPES}
     for key, choices in wanted.items():
         if meta.get(key) not in choices:
-            raise DataError(f"{path}: {key} must be one of {choices}, got {meta.get(key)!r}")
+            raise DataError(f"{where}: {key} must be one of {choices}, got {meta.get(key)!r}")
     for key in ("images", "rows", "code_bytes"):
-        if not isinstance(meta.get(key), int) or meta[key] < 0:
-            raise DataError(f"{path}: {key} must be a whole number, got {meta.get(key)!r}")
-    sizes = meta.get("file_bytes")
-    if not isinstance(sizes, dict):
-        raise DataError(f"{path}: file_bytes must map each array file to its size")
+        value = meta.get(key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise DataError(f"{where}: {key} must be a whole number, got {value!r}")
+    if needs_file_bytes and not isinstance(meta.get("file_bytes"), dict):
+        raise DataError(f"{where}: file_bytes must map each array file to its size")
     return meta
 
 
@@ -291,8 +377,11 @@ def load_array(folder: Path, name: str, meta: dict) -> np.ndarray:
         raise DataError(f"cannot read {path} (corrupt: {error})") from None
 
 
-def check_arrays(folder: Path, arrays: dict, meta: dict, codec: DescriptorCodec) -> None:
-    """Shapes and dtypes of every array, and the values of the small ones."""
+def check_arrays(
+    arrays: dict, meta: dict, codec: DescriptorCodec, where: Callable[[str], str]
+) -> None:
+    """Shapes and dtypes of every array, and the values of the small ones; a fault is
+    a DataError naming the array as `where(name)` spells it (a file or a tensor)."""
     count, total = meta["images"], meta["rows"]
     shapes = {
         "offsets": ((count + 1,), np.dtype(np.int64)),
@@ -305,19 +394,19 @@ def check_arrays(folder: Path, arrays: dict, meta: dict, codec: DescriptorCodec)
         array = arrays[name]
         if array.shape != shape or array.dtype != dtype:
             raise DataError(
-                f"{folder / (name + '.npy')} holds {array.dtype} {list(array.shape)}, "
+                f"{where(name)} holds {array.dtype} {list(array.shape)}, "
                 f"expected {dtype} {list(shape)}"
             )
     names = arrays["names"]
     if names.shape != (count,) or names.dtype.kind != "S":
-        raise DataError(f"{folder / 'names.npy'} must hold {count} byte strings")
+        raise DataError(f"{where('names')} must hold {count} byte strings")
     offsets = np.array(arrays["offsets"])
     if count and (offsets[0] != 0 or offsets[-1] != total or (np.diff(offsets) < 0).any()):
-        raise DataError(f"{folder / 'offsets.npy'}: offsets must rise from 0 to {total}")
+        raise DataError(f"{where('offsets')}: offsets must rise from 0 to {total}")
     poses = np.array(arrays["poses"])
     norms = np.linalg.norm(poses[:, 3:], axis=1)
     if not np.isfinite(poses).all() or (np.abs(norms - 1) > QUATERNION_TOLERANCE).any():
-        raise DataError(f"{folder / 'poses.npy'}: a pose is not finite or has no unit quaternion")
+        raise DataError(f"{where('poses')}: a pose is not finite or has no unit quaternion")
     cameras = np.array(arrays["cameras"])
     # Vectorised (a building has 10^5 cameras): PinholeCamera's own checks, at once.
     sizes = cameras[:, 4:]
@@ -330,7 +419,7 @@ def check_arrays(folder: Path, arrays: dict, meta: dict, codec: DescriptorCodec)
     if not good.all():
         number = int(np.flatnonzero(~good)[0])
         raise DataError(
-            f"{folder / 'cameras.npy'}: camera {number} is not a camera "
+            f"{where('cameras')}: camera {number} is not a camera "
             f"(fx, fy, cx, cy, width, height = {cameras[number].tolist()})"
         )
     # The small arrays in memory from here on: mapped ones would read the disk per image.

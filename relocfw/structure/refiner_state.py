@@ -22,6 +22,18 @@ from relocfw.structure.map_state import checked_tensor
 # Stored as its index here: append new choices, never reorder (older files keep
 # their codes: 0 descriptor, 1 pose).
 KEYFRAMES = ("descriptor", "pose", "track")
+# Where the map is held (memory: a StructureMap; compact: a compact map,
+# relocfw.structure.compact_cache) and how keyframes are searched by descriptor
+# (relocfw.structure.faiss_keyframes). Stored as indices too; a file without them was
+# written before they existed and answers as memory / numpy.
+MAP_STORES = ("memory", "compact")
+KEYFRAME_SEARCHES = ("numpy", "faiss")
+# The options stored as an index into their choices.
+STATE_CHOICES = {
+    "keyframes": KEYFRAMES,
+    "map_store": MAP_STORES,
+    "keyframe_search": KEYFRAME_SEARCHES,
+}
 # The integer options a state keeps, with their least values, and the numbers.
 STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4, "ransac_min_iterations": 1}
 STATE_NUMBERS = ("ratio", "max_error_px", "image_scale")
@@ -43,15 +55,25 @@ def checked_min_iterations(value: object) -> int:
 
 def checked_keyframes_choice(keyframes: object) -> str:
     """refine.keyframes as given, or ConfigError listing the choices."""
-    if keyframes not in KEYFRAMES:
-        choices = ", ".join(KEYFRAMES)
-        raise ConfigError(f"refine.keyframes must be one of {choices}, got {keyframes!r}")
-    return str(keyframes)
+    return checked_choice("keyframes", keyframes)
+
+
+def checked_choice(key: str, value: object) -> str:
+    """refine.<key> (a STATE_CHOICES key) as given, or ConfigError listing the choices."""
+    choices = STATE_CHOICES[key]
+    if not isinstance(value, str) or value not in choices:
+        raise ConfigError(f"refine.{key} must be one of {', '.join(choices)}, got {value!r}")
+    return value
 
 
 def options_state(options: dict) -> dict[str, torch.Tensor]:
-    """`options` (keyframes and every STATE_INTEGERS / STATE_NUMBERS key) as tensors."""
-    state = {"keyframes": torch.tensor(KEYFRAMES.index(options["keyframes"]))}
+    """`options` (keyframes and every STATE_INTEGERS / STATE_NUMBERS key; map_store,
+    keyframe_search and the flags where given) as tensors."""
+    state = {
+        key: torch.tensor(choices.index(options[key]))
+        for key, choices in STATE_CHOICES.items()
+        if key in options
+    }
     state |= {key: torch.tensor(int(options[key])) for key in STATE_INTEGERS}
     state |= {key: torch.tensor(float(options[key]), dtype=torch.float64) for key in STATE_NUMBERS}
     state |= {key: torch.tensor(int(bool(options[key]))) for key in STATE_FLAGS if key in options}
@@ -63,15 +85,16 @@ def stored_options(state: dict[str, torch.Tensor]) -> dict:
     an option the state lacks keeps the constructor's."""
     options: dict = {}
     try:
-        if "keyframes" in state:
-            code = int(checked_tensor(state, "keyframes", torch.int64, STATE_LABEL))
-            if not 0 <= code < len(KEYFRAMES):
-                codes = ", ".join(f"{n} {name}" for n, name in enumerate(KEYFRAMES))
-                raise DataError(
-                    f"{STATE_LABEL}: keyframes must be in 0..{len(KEYFRAMES) - 1} "
-                    f"({codes}), got {code}"
-                )
-            options["keyframes"] = KEYFRAMES[code]
+        for key, choices in STATE_CHOICES.items():
+            if key in state:
+                code = int(checked_tensor(state, key, torch.int64, STATE_LABEL))
+                if not 0 <= code < len(choices):
+                    codes = ", ".join(f"{n} {name}" for n, name in enumerate(choices))
+                    raise DataError(
+                        f"{STATE_LABEL}: {key} must be in 0..{len(choices) - 1} "
+                        f"({codes}), got {code}"
+                    )
+                options[key] = choices[code]
         for key in STATE_INTEGERS:
             if key in state:
                 value = int(checked_tensor(state, key, torch.int64, STATE_LABEL))

@@ -225,3 +225,47 @@ def test_the_refiner_answers_with_its_stored_options(scene, tmp_path):
         3,
         512,
     )
+
+
+def test_a_compact_map_model_is_one_file_that_answers_as_the_run(scene, depth_model, tmp_path):
+    # refine.map_store=compact: the run answers from a folder beside the structure
+    # cache; the model file holds the compact arrays, so it answers with the map
+    # images, depth files and that folder all gone.
+    cache = tmp_path / "cache"
+    relocalizer, options = fitted(scene, map_store="compact", cache_dir=str(cache))
+    assert relocalizer.refiner.structure is None
+    on_disk = relocalizer.refiner.compact.file_bytes()
+    expected = [relocalizer.localize(q) for q in scene["queries"]]
+    assert sum(not a.fell_back for a in expected) >= 2
+    path = saved(relocalizer, options, tmp_path / "model.relocfw")
+    stored = torch.load(path, weights_only=True)["refine"]["state"]
+    assert stored["compact_points"].dtype == torch.float16 and "descriptors" not in stored
+    moved = scene["root"].with_name("gone-compact")
+    scene["root"].rename(moved)
+    for folder in (cache / "structure").iterdir():
+        folder.rename(tmp_path / f"gone-{folder.name}")
+    try:
+        loaded = load_model(path)
+        assert loaded.refiner.map_store == "compact" and loaded.refiner.compact.folder is None
+        assert_same_answers([loaded.localize(q) for q in scene["queries"]], expected)
+    finally:
+        moved.rename(scene["root"])
+    # What the docs quote (docs/structure.md, "Large maps"): the refine part's bytes
+    # per map image, and the map's bytes a fitted refiner holds in memory.
+    count = len(scene["frames"])
+    memory_refiner = depth_model[0].refiner
+    memory_state = sum(t.nbytes for t in memory_refiner.state().values())
+    compact_state = sum(t.nbytes for t in stored.values())
+    in_memory = sum(
+        f.keypoints.nbytes + f.descriptors.nbytes + p.nbytes
+        for f, p in zip(
+            memory_refiner.structure.features, memory_refiner.structure.points, strict=True
+        )
+    )
+    print(
+        f"\nrefine state bytes per map image: memory {memory_state / count:.0f}, compact "
+        f"{compact_state / count:.0f}; map held in memory per image: StructureMap "
+        f"{in_memory / count:.0f} (+ MatchIndex {memory_refiner.match_index.nbytes / count:.0f}), "
+        f"compact {relocalizer.refiner.compact.resident_bytes() / count:.0f} (its folder "
+        f"{on_disk / count:.0f} on disk)"
+    )
