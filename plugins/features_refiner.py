@@ -433,9 +433,10 @@ class FeaturesRefiner(PoseRefiner):
             *STATE_INTEGERS,
             *STATE_NUMBERS,
         )
-        stored_map = map_state(self.structure) if self.compact is None else {}
         if self.compact is not None:
             stored_map = compact_state(self.compact)
+        else:
+            stored_map = map_state(self.structure)
         return {
             **stored_map,
             **self.zscore.state(),
