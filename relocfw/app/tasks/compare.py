@@ -186,9 +186,11 @@ def one_dataset(plans: Mapping[tuple, tuple[DictConfig, Any]]) -> None:
     once, with the first row's options, and shared by every row, so a row's own
     dataset.* override would silently do nothing."""
     found: dict[Any, dict[str, str]] = {}
-    for (_, scene, name), (method_cfg, _) in plans.items():
+    for (seed, scene, name), (method_cfg, _) in plans.items():
         options = json.dumps(OmegaConf.to_container(method_cfg.dataset, resolve=True), default=str)
-        found.setdefault(scene, {}).setdefault(options, name)
+        # Per training seed: a dataset option may follow the seed (the synthetic
+        # scene's `seed: ${seed}`), and the rows of one seed must agree.
+        found.setdefault((seed, scene), {}).setdefault(options, name)
     for names in found.values():
         if len(names) > 1:
             rows = ", ".join(repr(name) for name in names.values())
