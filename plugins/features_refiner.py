@@ -315,6 +315,8 @@ class FeaturesRefiner(PoseRefiner):
     def fit(self, views: Sequence[MapImage], descriptors: np.ndarray, quiet: bool = True) -> None:
         quiet = quiet or self.quiet
         self.check_map_store()  # again: load_state may have set the store of a file
+        # A fit that fails part-way leaves no map, not the old map with new settings.
+        self.structure, self.compact, self.match_index, self.keyframe_index = (None,) * 4
         self.tracked.clear()  # poses of another map's frames
         self.camera = map_camera(views)
         source = self.check_source(views, depth_files=False)
@@ -482,8 +484,10 @@ class FeaturesRefiner(PoseRefiner):
             camera = distinct.pop() if len(distinct) == 1 else None
         keyframe_points, zscore = stored_keyframe_descriptors(state, count)
         pose_to_colour = stored_pose_to_colour(state, STATE_LABEL)
+        # Built before anything is kept: an empty map is refused here, not half-loaded.
+        keyframe_index = None
         if options["keyframe_search"] == "faiss":
-            imported_faiss()  # before anything is kept
+            keyframe_index = FaissKeyframeSearch(keyframe_points)
         for key, value in options.items():
             setattr(self, key, value)
         self.structure, self.compact = structure, compact
@@ -494,7 +498,7 @@ class FeaturesRefiner(PoseRefiner):
             self.match_index = MatchIndex.of(structure, self.match_points_only)
         self.zscore = zscore
         self.points = keyframe_points
-        self.keyframe_index = self.keyframe_search_of(keyframe_points)
+        self.keyframe_index = keyframe_index
         self.poses = poses
         self.camera = camera
         self.structure_source = source

@@ -106,6 +106,9 @@ def compact_of_state(state: dict[str, torch.Tensor], label: str) -> CompactMap:
     for key in ("code_bytes", "images", "rows"):
         if meta_values[key] < 0:
             raise DataError(f"{label}: {PREFIX}{key} must be at least 0, got {meta_values[key]}")
+    if meta_values["images"] == 0:
+        # A map without an image answers nothing; refused here, as fit refuses it.
+        raise DataError(f"{label}: {PREFIX}images is 0: the map holds no image")
     meta = {
         "kind": COMPACT_KIND,
         "format": meta_values["format"],

@@ -160,6 +160,8 @@ def damaged(state: dict, key: str, how: str) -> dict:
         state[key].view(-1)[0] = float("nan")
     elif how == "value":
         state[key].view(-1)[-1] = state[key].view(-1)[-1] + 7
+    elif how == "zero":
+        state[key] = torch.zeros_like(state[key])
     return state
 
 
@@ -176,6 +178,7 @@ def damaged(state: dict, key: str, how: str) -> dict:
         ("compact_format", "value", "compact_format is 8"),
         ("compact_rows", "value", "compact_codes holds uint8"),
         ("map_store", "value", "map_store must be in 0..1"),
+        ("compact_images", "zero", "compact_images is 0: the map holds no image"),
     ],
 )
 def test_a_damaged_compact_tensor_is_one_data_error_naming_it(compact_state, key, how, message):

@@ -183,11 +183,14 @@ def one_calibration(plans: Mapping[tuple, tuple[DictConfig, Any]]) -> None:
 
 def one_dataset(plans: Mapping[tuple, tuple[DictConfig, Any]]) -> None:
     """Refuse rows whose `dataset.*` options differ: each scene's frames are loaded
-    once, with the first row's options, and shared by every row, so a row's own
-    dataset.* override would silently do nothing."""
+    once, with the first row's options (of the first training seed: every seed answers
+    the same frames), and shared by every row, so a row's own dataset.* override would
+    silently do nothing. Where the caches live and quiet do not change the frames."""
     found: dict[Any, dict[str, str]] = {}
     for (seed, scene, name), (method_cfg, _) in plans.items():
-        options = json.dumps(OmegaConf.to_container(method_cfg.dataset, resolve=True), default=str)
+        values = OmegaConf.to_container(method_cfg.dataset, resolve=True)
+        kept = {k: v for k, v in values.items() if k not in ("cache_dir", "quiet")}
+        options = json.dumps(kept, default=str, sort_keys=True)
         # Per training seed: a dataset option may follow the seed (the synthetic
         # scene's `seed: ${seed}`), and the rows of one seed must agree.
         found.setdefault((seed, scene), {}).setdefault(options, name)
