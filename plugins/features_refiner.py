@@ -369,7 +369,6 @@ class FeaturesRefiner(PoseRefiner):
                 map_views, self.max_features, quiet=quiet, image_scale=scale, **parameters
             )
 
-        self.structure, self.compact, self.match_index = None, None, None
         if self.cache_dir is None:
             structure = build()
         else:

@@ -97,3 +97,13 @@ def exit_status(code: object) -> int:
         return code
     print(code, file=sys.stderr)
     return 1
+
+
+def users_methods(tmp_path: Path, name: str, rows: str) -> list[str]:
+    """The overrides that run a user's own methods file: `rows` (YAML, one row a line)
+    written as `tmp_path/mine/methods/<name>.yaml` under compare.methods, found
+    through hydra.searchpath as a user's file would be."""
+    folder = tmp_path / "mine" / "methods"
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / f"{name}.yaml").write_text(f"# @package compare.methods\n{rows}")
+    return [f"methods={name}", f"hydra.searchpath=[file://{tmp_path / 'mine'}]"]

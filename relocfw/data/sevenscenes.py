@@ -56,10 +56,9 @@ from relocfw.data.on_error import OnError
 
 SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
 SEQUENCE_LINE = re.compile(r"^sequence(\d+)$", re.IGNORECASE)
-# Which sensor camera-intrinsics.txt describes (dataset.intrinsics_for).
+# The Kinect's two sensors: which one camera-intrinsics.txt describes
+# (dataset.intrinsics_for), and which one the pose files describe (dataset.poses_of).
 SENSORS = ("depth", "colour")
-# Which sensor the pose files describe (dataset.poses_of).
-POSE_SENSORS = ("depth", "colour")
 # A file whose presence in a scene folder (or the dataset root) says that its depth
 # maps are registered to the colour images, pixel for pixel.
 REGISTERED_MARKER = "depth-registered.txt"
@@ -166,24 +165,25 @@ class SceneCameras:
     depth_to_colour: np.ndarray | None
 
 
-def checked_sensor(intrinsics_for: object) -> str:
-    """`intrinsics_for` when it names a sensor, else a ConfigError naming the key."""
-    if intrinsics_for not in SENSORS:
+def sensor_named(key: str, value: object, described: str) -> str:
+    """`value` when it names a sensor (SENSORS), else a ConfigError naming
+    dataset.<key> and what the sensor is the one of (`described`)."""
+    if value not in SENSORS:
         raise ConfigError(
-            f"dataset.intrinsics_for must be one of {', '.join(SENSORS)} (the sensor "
-            f"camera-intrinsics.txt describes), got {intrinsics_for!r}"
+            f"dataset.{key} must be one of {', '.join(SENSORS)} (the sensor {described}), "
+            f"got {value!r}"
         )
-    return str(intrinsics_for)
+    return str(value)
+
+
+def checked_sensor(intrinsics_for: object) -> str:
+    """dataset.intrinsics_for, checked."""
+    return sensor_named("intrinsics_for", intrinsics_for, "camera-intrinsics.txt describes")
 
 
 def checked_pose_sensor(poses_of: object) -> str:
-    """`poses_of` when it names a sensor, else a ConfigError naming the key."""
-    if poses_of not in POSE_SENSORS:
-        raise ConfigError(
-            f"dataset.poses_of must be one of {', '.join(POSE_SENSORS)} (the sensor the "
-            f"pose files describe), got {poses_of!r}"
-        )
-    return str(poses_of)
+    """dataset.poses_of, checked."""
+    return sensor_named("poses_of", poses_of, "the pose files describe")
 
 
 def depth_registered(folder: Path) -> bool:

@@ -16,7 +16,7 @@ from relocfw.app import cli
 from relocfw.app.config_schema import Task, name_of
 from relocfw.app.spellings import rewrite
 from relocfw.core.errors import ConfigError
-from tests.cli_runs import relocfw, relocfw_here
+from tests.cli_runs import relocfw, relocfw_here, users_methods
 from tests.conftest import TINY_MODEL, TINY_OVERRIDES
 
 
@@ -313,20 +313,11 @@ def test_old_spellings_are_rewritten_key_by_key(old, task, new):
 def test_a_users_old_methods_file_still_works(tmp_path):
     """compare.methods rows in the old spellings are read in the new ones, one note per
     key (the file is composed but nothing runs: the reference is missing)."""
-    folder = tmp_path / "mine" / "methods"
-    folder.mkdir(parents=True)
-    (folder / "old.yaml").write_text(
-        "# @package compare.methods\n"
-        "Shared: [crop=ga, scoring=shared, rerank=2]\n"
-        "Shared again: [crop=sweep, scoring=shared]\n"
+    rows = (
+        "Shared: [crop=ga, scoring=shared, rerank=2]\nShared again: [crop=sweep, scoring=shared]\n"
     )
-    args = [
-        *TINY_OVERRIDES,
-        "task=compare",
-        "methods=old",
-        "compare.reference=Nobody",
-        f"hydra.searchpath=[file://{tmp_path / 'mine'}]",
-    ]
+    methods = users_methods(tmp_path, "old", rows)
+    args = [*TINY_OVERRIDES, "task=compare", *methods, "compare.reference=Nobody"]
     result = relocfw_here(args, tmp_path)
     assert result.returncode == 2
     assert result.stderr.splitlines() == [
@@ -370,17 +361,8 @@ def test_retrieval_k_0_is_refused_with_what_it_meant(old):
 
 
 def test_an_old_methods_row_with_retrieval_k_names_the_row(tmp_path):
-    folder = tmp_path / "mine" / "methods"
-    folder.mkdir(parents=True)
-    (folder / "old.yaml").write_text(
-        "# @package compare.methods\nRetrieval: [crop=centre, index=exhaustive, retrieval_k=1]\n"
-    )
-    args = [
-        *TINY_OVERRIDES,
-        "task=compare",
-        "methods=old",
-        f"hydra.searchpath=[file://{tmp_path / 'mine'}]",
-    ]
+    rows = "Retrieval: [crop=centre, index=exhaustive, retrieval_k=1]\n"
+    args = [*TINY_OVERRIDES, "task=compare", *users_methods(tmp_path, "old", rows)]
     result = relocfw_here(args, tmp_path)
     assert result.returncode == 2
     assert result.stderr.splitlines() == [
@@ -502,19 +484,8 @@ def test_every_shipped_methods_row_composes(methods, monkeypatch):
 def test_compare_rows_with_their_own_dataset_options_are_refused(tmp_path):
     # Each scene's frames are loaded once, with the first row's dataset options: a
     # row's own dataset.* would silently answer with the first row's frames.
-    folder = tmp_path / "mine" / "methods"
-    folder.mkdir(parents=True)
-    (folder / "poses.yaml").write_text(
-        "# @package compare.methods\n"
-        "PoseNet: [crop=centre]\n"
-        "Fewer queries: [crop=centre, dataset.test_frames=3]\n"
-    )
-    args = [
-        *TINY_OVERRIDES,
-        "task=compare",
-        "methods=poses",
-        f"hydra.searchpath=[file://{tmp_path / 'mine'}]",
-    ]
+    rows = "PoseNet: [crop=centre]\nFewer queries: [crop=centre, dataset.test_frames=3]\n"
+    args = [*TINY_OVERRIDES, "task=compare", *users_methods(tmp_path, "poses", rows)]
     result = relocfw_here(args, tmp_path)
     assert result.returncode == 2
     assert result.stderr.splitlines()[-1].startswith(

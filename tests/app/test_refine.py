@@ -14,7 +14,7 @@ from relocfw import load_model
 from relocfw.data.frames import read_images
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.plugins.retrieval_refiner import RetrievalRefiner
-from tests.cli_runs import relocfw, relocfw_here
+from tests.cli_runs import relocfw, relocfw_here, users_methods
 from tests.conftest import TINY_MODEL
 from tests.data.formats import write_folder
 
@@ -111,15 +111,13 @@ def test_refine_retrieval_runs_with_k_means_and_is_stored_in_the_model_file(tiny
 def test_structure_rows_take_turns_and_report_the_whole_query(tmp_path):
     pytest.importorskip("poselib")
     run_dir = tmp_path / "compare"
-    folder = tmp_path / "mine" / "methods"
-    folder.mkdir(parents=True)
-    (folder / "turns.yaml").write_text(
-        "# @package compare.methods\n"
+    rows = users_methods(
+        tmp_path,
+        "turns",
         "PoseNet: [crop=centre]\n"
         "Depth: [crop=centre, refine=features, refine.image_scale=1.0]\n"
-        "Depth half: [crop=centre, refine=features, refine.image_scale=0.5]\n"
+        "Depth half: [crop=centre, refine=features, refine.image_scale=0.5]\n",
     )
-    rows = ["methods=turns", f"hydra.searchpath=[file://{tmp_path / 'mine'}]"]
     args = [*TINY_MODEL, *SCENE, "task=compare", *rows, "compare.crop_seeds=null"]
     result = relocfw([*args, "compare.round_robin=true", f"hydra.run.dir={run_dir}"], tmp_path)
     assert result.returncode == 0, result.stderr

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import pytest
 
 from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.core.values import Pose
+from relocfw.data.sevenscenes import REGISTERED_MARKER
 from relocfw.structure.map_view import MapView
 from relocfw.structure.structure_map import (
     StructureMap,
@@ -86,3 +88,12 @@ def depth_structure(synthetic_scene: SyntheticScene) -> StructureMap:
 def triangulated_structure(synthetic_scene: SyntheticScene) -> StructureMap:
     """The map of all three views by triangulation, each with the other two."""
     return build_by_triangulation(synthetic_scene.views, max_features=1024, partners=2, quiet=True)
+
+
+@pytest.fixture
+def raw_kinect_scene(tiny_scene: Path, tmp_path: Path) -> Path:
+    """The tiny synthetic scene as a 7-Scenes copy with raw (unregistered) depth."""
+    copy = tmp_path / "room"
+    shutil.copytree(tiny_scene, copy)
+    (copy / REGISTERED_MARKER).unlink()
+    return copy

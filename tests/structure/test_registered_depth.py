@@ -8,8 +8,6 @@ colour camera, turned by 1 degree, with a longer focal length, as a Kinect's doe
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 
@@ -19,7 +17,6 @@ from relocfw.core.geometry import matrix_to_quaternion, quaternion_to_matrix
 from relocfw.core.rigid import checked_rigid
 from relocfw.core.values import Pose
 from relocfw.data.sevenscenes import (
-    REGISTERED_MARKER,
     SEVENSCENES_DEPTH_TO_COLOUR,
     SevenScenes,
     load_sevenscenes,
@@ -188,15 +185,6 @@ def test_the_kinect_calibration_is_rigid_and_about_2_5_cm_along_x():
     translation = SEVENSCENES_DEPTH_TO_COLOUR[:3, 3]
     assert -0.03 < translation[0] < -0.02 and np.abs(translation[1:]).max() < 0.005
     assert not SEVENSCENES_DEPTH_TO_COLOUR.flags.writeable
-
-
-@pytest.fixture
-def raw_kinect_scene(tiny_scene, tmp_path):
-    """The tiny synthetic scene as a 7-Scenes copy with raw (unregistered) depth."""
-    copy = tmp_path / "room"
-    shutil.copytree(tiny_scene, copy)
-    (copy / REGISTERED_MARKER).unlink()
-    return copy
 
 
 def test_intrinsics_for_names_the_sensor_the_file_describes(raw_kinect_scene):

@@ -153,19 +153,6 @@ def test_relative_keeps_colour_poses_and_the_transform(kinect_map):
     np.testing.assert_array_equal(loaded.pose_to_colour, transform)
 
 
-@pytest.fixture
-def raw_kinect_scene(tiny_scene, tmp_path):
-    """The tiny synthetic scene as a 7-Scenes copy with raw (unregistered) depth."""
-    import shutil
-
-    from relocfw.data.sevenscenes import REGISTERED_MARKER
-
-    copy = tmp_path / "room"
-    shutil.copytree(tiny_scene, copy)
-    (copy / REGISTERED_MARKER).unlink()
-    return copy
-
-
 def test_7scenes_poses_are_the_colour_cameras_unless_told(raw_kinect_scene, tiny_scene):
     assert load_sevenscenes(raw_kinect_scene, None, "test")[0].pose_to_colour is None
     depth_side = load_sevenscenes(raw_kinect_scene, None, "test", poses_of="depth")[0]
