@@ -242,11 +242,11 @@ def check_pretrained(cfg: DictConfig, choices: Mapping[str, str], backbone: Back
 def dataset_settings(cfg: DictConfig) -> dict[str, Any]:
     """What identifies the data: the dataset options without where caches live."""
     values = OmegaConf.to_container(cfg.dataset, resolve=True)
-    # metric only names the unit of the reports, and depth_units_per_metre,
-    # intrinsics_for and poses_of only how the structure stage reads depth, cameras
-    # and which sensor the poses describe (the network
-    # never sees a camera), and a COLMAP model's points only what the structure stage
-    # lifts: the same images and poses train the same model.
+    # metric only names the unit of the reports; depth_units_per_metre, intrinsics_for,
+    # poses_of and colour_focal only how the structure stage reads depth and cameras and
+    # which sensor the poses describe (the network never sees a camera); and a COLMAP
+    # model's points only what the structure stage lifts: the same images and poses
+    # train the same model.
     left_out = (
         "cache_dir",
         "quiet",
@@ -254,6 +254,7 @@ def dataset_settings(cfg: DictConfig) -> dict[str, Any]:
         "depth_units_per_metre",
         "intrinsics_for",
         "poses_of",
+        "colour_focal",
         "points",
     )
     return {k: v for k, v in values.items() if k not in left_out}

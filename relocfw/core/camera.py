@@ -155,10 +155,11 @@ class PinholeCamera:
 # 585 and principal point (320, 240): the DEPTH sensor's. The colour sensor is
 # another camera: the scene-coordinate pipelines on 7-Scenes (DSAC*, ACE:
 # datasets/setup_7scenes.py, after tsattler/visloc_pseudo_gt_limitations) give it
-# focal length 525 with the same principal point. On the shared Red Kitchen frames,
-# points triangulated between colour images agree in range with registered depth at
-# 525, not at 585 (benchmarks/depth_registration.py; docs/structure.md, "Colour and
-# depth cameras").
+# a nominal focal length of 525 with the same principal point. On the shared Red
+# Kitchen frames, points triangulated between colour images agree in range with
+# registered depth near 525, not at 585 (benchmarks/depth_registration.py;
+# docs/structure.md, "Colour and depth cameras"). 532 was tried (dataset.colour_focal)
+# and not taken: docs/results/structure.md, "The colour camera's focal length".
 SEVENSCENES_COLOUR = PinholeCamera(525.0, 525.0, 320.0, 240.0, 640, 480)
 SEVENSCENES_DEPTH = PinholeCamera(585.0, 585.0, 320.0, 240.0, 640, 480)
 # The name this module gave the 585 camera before the two sensors were told apart;

@@ -4,8 +4,9 @@ Each frame also gets its cameras and, where the folder has it, its depth map:
     camera      the colour camera. A Kinect v1 has two sensors: 7-Scenes' one published
                 calibration, focal length 585 and principal point (320, 240), which
                 `camera-intrinsics.txt` holds in the dataset's copies, is the DEPTH
-                sensor's; the colour sensor is the 525 camera (relocfw.core.camera
-                .SEVENSCENES_COLOUR). `intrinsics_for` names which sensor the file
+                sensor's; the colour sensor is the nominal 525 camera
+                (relocfw.core.camera.SEVENSCENES_COLOUR), or `colour_focal`'s.
+                `intrinsics_for` names which sensor the file
                 describes (default "depth"); the other sensor gets its nominal camera
                 scaled to the colour images' size. The file is the scene folder's,
                 else the dataset root's (the folder above it, where 7-Scenes' archives
@@ -36,6 +37,7 @@ Each frame also gets its cameras and, where the folder has it, its depth map:
 
 from __future__ import annotations
 
+import math
 import re
 import sys
 from collections.abc import Sequence
@@ -63,8 +65,8 @@ SENSORS = ("depth", "colour")
 # maps are registered to the colour images, pixel for pixel.
 REGISTERED_MARKER = "depth-registered.txt"
 # A file taken as the depth camera whose fx / width lies this close (relative) to the
-# colour camera's 525 / 640 is probably a colour calibration (the depth sensor's is
-# 585 / 640, 11% more).
+# colour camera's 525 / 640 is probably a colour calibration (the depth
+# sensor's is 585 / 640, 10% more).
 COLOUR_LOOKALIKE_SHARE = 0.03
 
 # The Kinect's depth-to-colour transform, x_colour = R x_depth + t (metres): the
@@ -207,8 +209,29 @@ def note_colour_lookalike(path: Path, camera: PinholeCamera) -> None:
         )
 
 
+def colour_camera(colour_focal: object) -> PinholeCamera:
+    """The 640 x 480 colour camera of focal length `colour_focal` (principal point
+    SEVENSCENES_COLOUR's), or SEVENSCENES_COLOUR itself for None.
+
+    Raises:
+        ConfigError: naming dataset.colour_focal when it is not a positive number.
+    """
+    if colour_focal is None:
+        return SEVENSCENES_COLOUR
+    if isinstance(colour_focal, bool) or not isinstance(colour_focal, (int, float)):
+        raise ConfigError(f"dataset.colour_focal must be a number of pixels, got {colour_focal!r}")
+    focal = float(colour_focal)
+    if not math.isfinite(focal) or focal <= 0:
+        raise ConfigError(f"dataset.colour_focal must be a positive number of pixels, got {focal}")
+    nominal = SEVENSCENES_COLOUR
+    return PinholeCamera(focal, focal, nominal.cx, nominal.cy, nominal.width, nominal.height)
+
+
 def scene_cameras(
-    folder: Path, images: Sequence[Path], intrinsics_for: str = "depth"
+    folder: Path,
+    images: Sequence[Path],
+    intrinsics_for: str = "depth",
+    colour_focal: float | None = None,
 ) -> SceneCameras:
     """The cameras of a scene's images and depth maps.
 
@@ -219,22 +242,32 @@ def scene_cameras(
         intrinsics_for: the sensor camera-intrinsics.txt describes, "depth" (as 7-Scenes'
             copies ship it) or "colour"; the other sensor gets its nominal camera
             scaled to the same size. Not used where the depth is registered.
+        colour_focal: the colour camera's focal length (pixels at 640 x 480) where no
+            file describes the colour camera; None: SEVENSCENES_COLOUR's.
 
     Raises:
         DataError: naming the intrinsics file when it is malformed.
-        ConfigError: naming dataset.intrinsics_for when it is not a sensor.
+        ConfigError: naming dataset.intrinsics_for when it is not a sensor, and
+            dataset.colour_focal when it is not a positive number or a file
+            describes the colour camera already.
     """
     intrinsics_for = checked_sensor(intrinsics_for)
+    nominal_colour = colour_camera(colour_focal)
     registered = depth_registered(folder)
     path = intrinsics_file(folder)
+    if colour_focal is not None and path is not None and (registered or intrinsics_for == "colour"):
+        raise ConfigError(
+            f"dataset.colour_focal={colour_focal:g}: {path} describes the colour camera "
+            "already (it wins); leave colour_focal unset or the file out"
+        )
     if path is None:
-        what = "7-Scenes' nominal Kinect colour intrinsics"
+        what = f"7-Scenes' Kinect colour intrinsics (fx=fy={nominal_colour.fx:g})"
         if not registered:
             what += " (depth: fx=fy=585)"
-        note_default_camera(folder, SEVENSCENES_COLOUR, what)
+        note_default_camera(folder, nominal_colour, what)
         if registered:
-            return SceneCameras(SEVENSCENES_COLOUR, None, None)
-        return SceneCameras(SEVENSCENES_COLOUR, SEVENSCENES_DEPTH, SEVENSCENES_DEPTH_TO_COLOUR)
+            return SceneCameras(nominal_colour, None, None)
+        return SceneCameras(nominal_colour, SEVENSCENES_DEPTH, SEVENSCENES_DEPTH_TO_COLOUR)
     from_file = read_camera_for_images(path, images)
     if registered:
         return SceneCameras(from_file, None, None)
@@ -243,9 +276,7 @@ def scene_cameras(
     size = (from_file.width, from_file.height)
     if intrinsics_for == "depth":
         note_colour_lookalike(path, from_file)
-        return SceneCameras(
-            SEVENSCENES_COLOUR.scaled_to(*size), from_file, SEVENSCENES_DEPTH_TO_COLOUR
-        )
+        return SceneCameras(nominal_colour.scaled_to(*size), from_file, SEVENSCENES_DEPTH_TO_COLOUR)
     return SceneCameras(from_file, SEVENSCENES_DEPTH.scaled_to(*size), SEVENSCENES_DEPTH_TO_COLOUR)
 
 
@@ -278,6 +309,7 @@ def load_sevenscenes(
     sequences: Sequence[int] | None = None,
     intrinsics_for: str = "depth",
     poses_of: str = "colour",
+    colour_focal: float | None = None,
 ) -> list[Frame]:
     """Frames of one split, in sequence then frame order, with cameras and depth path.
 
@@ -293,6 +325,8 @@ def load_sevenscenes(
         poses_of: the sensor the pose files describe, "colour" or "depth"; with
             "depth" and unregistered depth each frame's `pose_to_colour` is the
             depth-to-colour transform (see the module).
+        colour_focal: the colour camera's focal length (pixels at 640 x 480) where no
+            file describes it; None: SEVENSCENES_COLOUR's (scene_cameras).
 
     Raises:
         DataError: a missing split file, sequence folder or image set, a bad pose file
@@ -326,7 +360,7 @@ def load_sevenscenes(
     if not posed:  # every pose skipped: nothing to give a camera to
         return []
     # One pair of cameras for the scene: 7-Scenes' frames all come from one Kinect.
-    cameras = scene_cameras(folder, [image for _, image, _ in posed], intrinsics_for)
+    cameras = scene_cameras(folder, [image for _, image, _ in posed], intrinsics_for, colour_focal)
     pose_to_colour = cameras.depth_to_colour if poses_of == "depth" else None
     frames = []
     for name, image, pose in posed:
@@ -360,6 +394,8 @@ class SevenScenes:
             own calibration, as its copies ship it) or "colour".
         poses_of: the sensor the pose files describe: "colour" or "depth" (see the
             module).
+        colour_focal: the colour camera's focal length (pixels at 640 x 480) where no
+            file describes it; None: SEVENSCENES_COLOUR's (525).
     """
 
     def __init__(
@@ -371,8 +407,11 @@ class SevenScenes:
         test_sequences: Sequence[int] | None = None,
         intrinsics_for: str = "depth",
         poses_of: str = "colour",
+        colour_focal: float | None = None,
     ) -> None:
         self.intrinsics_for = checked_sensor(intrinsics_for)
+        colour_camera(colour_focal)  # checked before any file is read
+        self.colour_focal = colour_focal
         self.poses_of = checked_pose_sensor(poses_of)
         self.folder = scene_folder(root, scene)
         self.on_error = OnError(on_error)
@@ -400,6 +439,7 @@ class SevenScenes:
             self.sequences.get(split),
             self.intrinsics_for,
             self.poses_of,
+            self.colour_focal,
         )
 
     def split_source(self, split: str) -> str:

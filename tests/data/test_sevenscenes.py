@@ -171,6 +171,50 @@ def test_without_an_intrinsics_file_the_7scenes_default(scene_copy):
     assert all(f.depth_to_colour is SEVENSCENES_DEPTH_TO_COLOUR for f in frames)
 
 
+def test_colour_focal_sets_the_nominal_colour_camera(scene_copy):
+    (scene_copy / "camera-intrinsics.txt").unlink()
+    (scene_copy / REGISTERED_MARKER).unlink()
+    frames = SevenScenes(scene_copy, None, colour_focal=529.5).frames("train")
+    assert {f.camera for f in frames} == {PinholeCamera(529.5, 529.5, 320, 240, 640, 480)}
+    assert {f.depth_camera for f in frames} == {SEVENSCENES_DEPTH}
+    # With a depth file, the colour camera is scaled to the images' size like the default.
+    write_intrinsics(scene_copy / "camera-intrinsics.txt", 43.875, 43.875, 23.5, 17.5)
+    frames = load_sevenscenes(scene_copy, None, "test", colour_focal=529.5)
+    expected = PinholeCamera(529.5, 529.5, 320, 240, 640, 480).scaled_to(48, 36)
+    assert {f.camera for f in frames} == {expected}
+    assert expected.fx == pytest.approx(529.5 * 48 / 640)
+
+
+@pytest.mark.parametrize("value", [0, -525.0, float("nan"), float("inf"), "wide", True])
+def test_a_colour_focal_that_is_not_a_focal_length_names_the_key(scene_copy, value):
+    with pytest.raises(ConfigError, match=r"dataset\.colour_focal"):
+        SevenScenes(scene_copy, None, colour_focal=value)
+
+
+@pytest.mark.parametrize("registered", [True, False])
+def test_colour_focal_beside_a_colour_file_is_refused(scene_copy, registered):
+    # The file describes the colour camera (registered depth, or intrinsics_for=colour):
+    # a user's calibration wins, so a second focal length is a contradiction.
+    if not registered:
+        (scene_copy / REGISTERED_MARKER).unlink()
+    dataset = SevenScenes(scene_copy, None, intrinsics_for="colour", colour_focal=532)
+    with pytest.raises(ConfigError, match=r"dataset\.colour_focal=532.*camera-intrinsics\.txt"):
+        dataset.frames("train")
+
+
+def test_colour_focal_leaves_the_trained_models_key_alone():
+    # The network never sees a camera: the same images and poses train the same model.
+    from omegaconf import OmegaConf
+
+    from relocfw.app.methods import dataset_settings
+
+    def settings(focal: float | None) -> dict:
+        dataset = {"_target_": "relocfw.data.sevenscenes.SevenScenes", "root": "r"}
+        return dataset_settings(OmegaConf.create({"dataset": {**dataset, "colour_focal": focal}}))
+
+    assert settings(525.0) == settings(532.0) == settings(None)
+
+
 @pytest.mark.parametrize("fx, noted", [(525 * 48 / 640, True), (585 * 48 / 640, False)])
 def test_a_colour_looking_depth_file_is_noted(scene_copy, capsys, fx, noted):
     (scene_copy / REGISTERED_MARKER).unlink()

@@ -1,0 +1,210 @@
+"""RGB-only map and solver settings on a validation block, with oracle retrieval.
+
+refine=features_rgb triangulates its map between map images with their known poses
+and the colour camera, then solves each query by PnP against the keyframes'
+points. This measures its settings one variant at a time on a VALIDATION block of
+the training sequences (map: --map-sequences, default 1, 3 and 5; queries:
+--query-sequence, default 7; never the test split), with everything but the
+variant's own keys at refine=features_rgb's defaults. Per variant:
+
+- the map's points against registered depth (relocfw.structure.map_quality): share
+  of keypoints with a point, median error and median ratio of triangulated to depth
+  range;
+- the queries, each matched against the `keyframes` map images nearest its
+  ground-truth pose (an oracle retrieval, so variants compare maps and solvers, not
+  retrieval): median errors, share within 5 cm / 5 deg, failures, and each query's
+  errors (for paired tests between variants).
+
+A variant is NAME:key=value,key=value with keys from: focal (the colour camera's focal
+length, pixels: 7-Scenes gives only the depth sensor's, 585; 525 is the community's
+nominal colour value), max_features, image_scale, keyframes, max_error_px,
+min_inliers, and any triangulation setting (partners, min_partner_angle_deg,
+max_partner_angle_deg, epipolar_px, max_reprojection_px, min_views, min_angle_deg,
+ratio).
+
+    OMP_NUM_THREADS=2 .venv/bin/python -m benchmarks.rgb_settings_oracle \
+        --variant default: --variant f532:focal=532 --out benchmarks/results/x.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import write_json
+from benchmarks.rgb_map_quality import LazyViews
+from relocfw.core.camera import PinholeCamera
+from relocfw.core.geometry import orientation_error_deg, position_error
+from relocfw.core.imaging import read_rgb
+from relocfw.data.frames import Frame
+from relocfw.data.sevenscenes import load_sevenscenes
+from relocfw.structure import build_by_triangulation, keyframes_by_pose, localize_against
+from relocfw.structure.map_quality import depth_agreement, point_share
+
+ROOT = Path("/work/shared/data/7scenes-redkitchen")
+# refine=features_rgb's defaults (conf/refine/features.yaml and features_rgb.yaml);
+# focal None keeps the loader's colour camera.
+DEFAULTS: dict[str, float | int | None] = {
+    "focal": None,
+    "max_features": 1024,
+    "image_scale": 0.5,
+    "keyframes": 20,
+    "max_error_px": 16.0,
+    "min_inliers": 8,
+}
+TRIANGULATION_DEFAULTS: dict[str, float | int] = {"epipolar_px": 6.0, "max_reprojection_px": 6.0}
+TRIANGULATION_KEYS = (
+    "partners",
+    "min_partner_angle_deg",
+    "max_partner_angle_deg",
+    "epipolar_px",
+    "max_reprojection_px",
+    "min_views",
+    "min_angle_deg",
+    "ratio",
+)
+INTEGER_KEYS = ("max_features", "keyframes", "min_inliers", "partners", "min_views")
+WITHIN_M, WITHIN_DEG = 0.05, 5.0
+
+
+@dataclasses.dataclass
+class Variant:
+    name: str
+    settings: dict
+    triangulation: dict
+
+
+def parsed_variant(text: str) -> Variant:
+    """NAME:key=value,... as a Variant over the defaults; an unknown key exits naming it."""
+    name, _, rest = text.partition(":")
+    settings, triangulation = dict(DEFAULTS), dict(TRIANGULATION_DEFAULTS)
+    for item in filter(None, rest.split(",")):
+        key, _, value = item.partition("=")
+        number = int(value) if key in INTEGER_KEYS else float(value)
+        if key in DEFAULTS:
+            settings[key] = number
+        elif key in TRIANGULATION_KEYS:
+            triangulation[key] = number
+        else:
+            raise SystemExit(f"--variant {text}: unknown key {key!r}")
+    return Variant(name or text, settings, triangulation)
+
+
+def with_focal(frames: list[Frame], focal: float | None) -> list[Frame]:
+    """The frames with the colour camera's focal length replaced (principal point kept)."""
+    if focal is None:
+        return frames
+    out = []
+    for frame in frames:
+        camera = frame.camera
+        changed = PinholeCamera(focal, focal, camera.cx, camera.cy, camera.width, camera.height)
+        out.append(dataclasses.replace(frame, camera=changed))
+    return out
+
+
+def query_rows(structure, queries: list[Frame], settings: dict) -> dict:
+    """Median errors, share within 5 cm / 5 deg and failures over the queries."""
+    positions, angles = [], []
+    for frame in queries:
+        chosen = keyframes_by_pose(structure, frame.pose, settings["keyframes"])
+        answer = localize_against(
+            structure,
+            read_rgb(frame.image_path),
+            frame.camera,
+            chosen,
+            max_features=settings["max_features"],
+            max_error_px=settings["max_error_px"],
+            min_inliers=settings["min_inliers"],
+            image_scale=settings["image_scale"],
+        )
+        if not answer.success:
+            positions.append(np.inf)
+            angles.append(np.inf)
+            continue
+        positions.append(float(position_error(answer.pose.position, frame.pose.position)))
+        angles.append(float(orientation_error_deg(answer.pose.quaternion, frame.pose.quaternion)))
+    positions_a, angles_a = np.array(positions), np.array(angles)
+    return {
+        "queries": len(queries),
+        "failures": int((~np.isfinite(positions_a)).sum()),
+        "median_position_m": float(np.median(positions_a)),
+        "median_orientation_deg": float(np.median(angles_a)),
+        "within_5cm_5deg": float(np.mean((positions_a <= WITHIN_M) & (angles_a <= WITHIN_DEG))),
+        "position_errors_m": [round(p, 5) if np.isfinite(p) else None for p in positions],
+        "orientation_errors_deg": [round(a, 4) if np.isfinite(a) else None for a in angles],
+    }
+
+
+def measured(variant: Variant, map_frames: list[Frame], query_frames: list[Frame]) -> dict:
+    settings = variant.settings
+    views = LazyViews(with_focal(map_frames, settings["focal"]))
+    start = time.perf_counter()
+    structure = build_by_triangulation(
+        views,
+        settings["max_features"],
+        quiet=True,
+        image_scale=settings["image_scale"],
+        **variant.triangulation,
+    )
+    row = {
+        "variant": variant.name,
+        "colour_focal": views[0].camera.fx,
+        "settings": settings,
+        "triangulation": variant.triangulation,
+        "build_seconds": round(time.perf_counter() - start, 1),
+        "share_with_point": point_share(structure),
+        "against_depth": dataclasses.asdict(depth_agreement(structure, views)),
+    }
+    row["query"] = query_rows(structure, with_focal(query_frames, settings["focal"]), settings)
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--variant", action="append", required=True, help="NAME:key=value,...")
+    parser.add_argument("--map-sequences", type=int, nargs="+", default=[1, 3, 5])
+    parser.add_argument("--query-sequence", type=int, default=7)
+    parser.add_argument("--out", type=Path, required=True)
+    args = parser.parse_args()
+    variants = [parsed_variant(text) for text in args.variant]
+    if args.query_sequence in args.map_sequences:
+        raise SystemExit("--query-sequence must not be one of --map-sequences")
+    for sequence in [*args.map_sequences, args.query_sequence]:
+        if sequence not in (1, 3, 5, 7):
+            raise SystemExit(f"sequence {sequence} is not a training one: choose on 1, 3, 5, 7")
+
+    map_frames = load_sevenscenes(ROOT, "redkitchen", "train", sequences=args.map_sequences)
+    query_frames = load_sevenscenes(ROOT, "redkitchen", "train", sequences=[args.query_sequence])
+    rows = []
+    for variant in variants:
+        row = measured(variant, map_frames, query_frames)
+        summary = {k: v for k, v in row["query"].items() if not k.endswith(("_m", "_deg"))}
+        summary.update(
+            median_position_m=round(row["query"]["median_position_m"], 4),
+            median_orientation_deg=round(row["query"]["median_orientation_deg"], 3),
+            share_with_point=round(row["share_with_point"], 3),
+            range_ratio=round(row["against_depth"]["median_range_ratio"], 4),
+        )
+        print(variant.name, summary, flush=True)
+        rows.append(row)
+    write_json(
+        {
+            "benchmark": "rgb_settings_oracle",
+            "data": str(ROOT),
+            "map_sequences": args.map_sequences,
+            "query_sequence": args.query_sequence,
+            "query_retrieval": "oracle: keyframes nearest the ground-truth pose",
+            "machine": platform.machine(),
+            "rows": rows,
+        },
+        args.out,
+    )
+
+
+if __name__ == "__main__":
+    main()
