@@ -144,19 +144,30 @@ def colmap_model_rows(
     }
 
 
-def query_rows(structure: StructureMap, queries: list[Frame], keyframes: int) -> dict:
-    """Median errors, share within 5 cm / 5 deg and failures of the query stand-in."""
+def query_errors(
+    structure: StructureMap, queries: list[Frame], keyframes: int, **solver
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each query's position (m) and orientation (deg) error, solved against the
+    `keyframes` map images nearest its ground-truth pose with `solver` passed to
+    localize_against; inf where it failed."""
     positions, angles = [], []
     for frame in queries:
         chosen = keyframes_by_pose(structure, frame.pose, keyframes)
-        answer = localize_against(structure, read_rgb(frame.image_path), frame.camera, chosen)
+        answer = localize_against(
+            structure, read_rgb(frame.image_path), frame.camera, chosen, **solver
+        )
         if not answer.success:
             positions.append(np.inf)
             angles.append(np.inf)
             continue
         positions.append(float(position_error(answer.pose.position, frame.pose.position)))
         angles.append(float(orientation_error_deg(answer.pose.quaternion, frame.pose.quaternion)))
-    positions_a, angles_a = np.array(positions), np.array(angles)
+    return np.array(positions), np.array(angles)
+
+
+def query_rows(structure: StructureMap, queries: list[Frame], keyframes: int) -> dict:
+    """Median errors, share within 5 cm / 5 deg and failures of the query stand-in."""
+    positions_a, angles_a = query_errors(structure, queries, keyframes)
     solved = np.isfinite(positions_a)
     return {
         "queries": len(queries),

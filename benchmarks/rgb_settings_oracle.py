@@ -37,13 +37,11 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import write_json
-from benchmarks.rgb_map_quality import LazyViews
+from benchmarks.rgb_map_quality import LazyViews, query_errors
 from relocfw.core.camera import PinholeCamera
-from relocfw.core.geometry import orientation_error_deg, position_error
-from relocfw.core.imaging import read_rgb
 from relocfw.data.frames import Frame
 from relocfw.data.sevenscenes import load_sevenscenes
-from relocfw.structure import build_by_triangulation, keyframes_by_pose, localize_against
+from relocfw.structure import build_by_triangulation
 from relocfw.structure.map_quality import depth_agreement, point_share
 
 ROOT = Path("/work/shared/data/7scenes-redkitchen")
@@ -109,34 +107,23 @@ def with_focal(frames: list[Frame], focal: float | None) -> list[Frame]:
 
 def query_rows(structure, queries: list[Frame], settings: dict) -> dict:
     """Median errors, share within 5 cm / 5 deg and failures over the queries."""
-    positions, angles = [], []
-    for frame in queries:
-        chosen = keyframes_by_pose(structure, frame.pose, settings["keyframes"])
-        answer = localize_against(
-            structure,
-            read_rgb(frame.image_path),
-            frame.camera,
-            chosen,
-            max_features=settings["max_features"],
-            max_error_px=settings["max_error_px"],
-            min_inliers=settings["min_inliers"],
-            image_scale=settings["image_scale"],
-        )
-        if not answer.success:
-            positions.append(np.inf)
-            angles.append(np.inf)
-            continue
-        positions.append(float(position_error(answer.pose.position, frame.pose.position)))
-        angles.append(float(orientation_error_deg(answer.pose.quaternion, frame.pose.quaternion)))
-    positions_a, angles_a = np.array(positions), np.array(angles)
+    positions_a, angles_a = query_errors(
+        structure,
+        queries,
+        settings["keyframes"],
+        max_features=settings["max_features"],
+        max_error_px=settings["max_error_px"],
+        min_inliers=settings["min_inliers"],
+        image_scale=settings["image_scale"],
+    )
     return {
         "queries": len(queries),
         "failures": int((~np.isfinite(positions_a)).sum()),
         "median_position_m": float(np.median(positions_a)),
         "median_orientation_deg": float(np.median(angles_a)),
         "within_5cm_5deg": float(np.mean((positions_a <= WITHIN_M) & (angles_a <= WITHIN_DEG))),
-        "position_errors_m": [round(p, 5) if np.isfinite(p) else None for p in positions],
-        "orientation_errors_deg": [round(a, 4) if np.isfinite(a) else None for a in angles],
+        "position_errors_m": [round(p, 5) if np.isfinite(p) else None for p in positions_a],
+        "orientation_errors_deg": [round(a, 4) if np.isfinite(a) else None for a in angles_a],
     }
 
 
