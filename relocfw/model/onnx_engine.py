@@ -84,15 +84,20 @@ FLOAT_KEY = "relocfw.float_graph_sha256"  # the float graph an int8 one was made
 CALIBRATION_IMAGES = 32  # map images static quantisation calibrates on (evenly spread)
 # How far a genuine int8 graph's answers may lie from torch's float32 ones on the check
 # images (onnx_graphs.check_images), in INT8_UNITS. Measured, the largest of every
-# static, static_8bit (saturating on AVX2) and dynamic graph of the tests' tiny PoseNet
+# static, static_8bit (saturating on AVX2) and dynamic graph of a tiny PoseNet
 # (64 px, 2 weight seeds, calibrated on noise or Red Kitchen frames; 30 opens) and of a
 # GoogLeNet at 96 and 224 px (untrained, He-initialised so answers vary by image; 8
 # opens), on check images and on Red Kitchen centre crops: positions 0.074 x the
 # position scale (GoogLeNet 0.041), quaternions 4.4 deg (1.2), descriptors 0.38 of
-# their length (0.12), maps 0.35 (0.09). The bounds are 6-7x that for poses, and for
-# descriptors and maps an error as long as torch's answer itself (a graph no closer
-# than zeros). The issue's forgery, +100 m, is 40 x the tests' position scale.
-INT8_TOLERANCE = {"positions": 0.5, "quaternions": 30.0, "features": 1.0, MAPS_OUTPUT: 1.0}
+# their length (0.12), maps 0.35 (0.09). The CLI tests' model (32 px, three training
+# steps, its quaternions barely trained) deviates far more in orientation: up to 27 deg
+# over 40 opens on an AVX-512 VNNI CPU and 35 deg on CI's
+# (benchmarks/int8_deviation.py), against at least 141 deg for a graph of another
+# seed's weights. So the orientation bound is 90 deg, between the two; positions 0.5,
+# 7x the largest genuine deviation; descriptors and maps an error as long as torch's
+# answer itself (a graph no closer than zeros). The issue's forgery, +100 m, is 40 x
+# the tests' position scale.
+INT8_TOLERANCE = {"positions": 0.5, "quaternions": 90.0, "features": 1.0, MAPS_OUTPUT: 1.0}
 INT8_UNITS = {
     "positions": "x the position scale",
     "quaternions": "deg",

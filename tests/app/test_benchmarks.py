@@ -193,8 +193,11 @@ def test_engine_ceiling(tmp_path):
 
 def test_engine_cost(tmp_path):
     pytest.importorskip("onnxruntime", reason="relocfw[onnx] not installed")
-    # The full and maps graphs, torch's samples, and a search for the int8 scout.
-    methods = ["centre", "mc kendall x40", "ga plain"]
+    # The full and maps graphs, torch's samples, and a search for the int8 scout. The
+    # sweep, not the GA: float32 engines differ from torch in the 7th digit, which on
+    # another CPU flipped one near-tie in a GA's ranking and so its whole later search
+    # (CI: the same crop in 1 of 2 queries); a sweep's fixed windows keep the argmin.
+    methods = ["centre", "mc kendall x40", "sweep plain"]
     report = run_script(
         "engine_cost.py",
         tmp_path / "e.json",

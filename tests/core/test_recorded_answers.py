@@ -43,7 +43,11 @@ def assert_recorded(answers, recorded):
     for answer, expected in zip(answers, recorded, strict=True):
         assert [answer.crop.x, answer.crop.y, answer.crop.size] == expected["crop"]
         assert answer.evaluations == expected["evaluations"]
-        assert answer.distance == pytest.approx(expected["distance"], rel=1e-6, abs=1e-6)
+        # float32 kernels of another instruction set (oneDNN's SSE4.1 path against the
+        # AVX2 / AVX-512 ones the record was written on) sum in another order: the
+        # Monte Carlo case's distance then moves by 1.6e-6 of itself (CI's CPU, and
+        # ONEDNN_MAX_CPU_ISA=SSE41 here). Crops and windows scored stay exact.
+        assert answer.distance == pytest.approx(expected["distance"], rel=1e-5, abs=1e-6)
         assert np.allclose(answer.pose.position, expected["position"], rtol=0, atol=1e-6)
         assert np.allclose(answer.pose.quaternion, expected["quaternion"], rtol=0, atol=1e-6)
         assert answer.position_spread == pytest.approx(
