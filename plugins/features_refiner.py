@@ -31,6 +31,13 @@ seconds then add both attempts per part, with the retry's in "tracking_retry". A
 stream without a confident pose (its first frame, or after a fallback) starts from
 retrieval; `reset` forgets every stream.
 
+Matching again (`rematch=true`). Keyframes found by descriptor are the map images
+that look like the query, not always the ones that see what it sees from where it
+stands. After a first solve that succeeds, the query is matched again against the
+`count` keyframes nearest the solved pose, looking its way (its local features
+reused), and the second solve answers where it succeeds too; otherwise the first
+stands. Its seconds add both solves per part, the second's also in "rematch".
+
 On a map that is not metric (refine.metric=false, set from dataset.metric: an
 unaligned COLMAP model), the default triangulation (refine.triangulation.method=
 tracks) is unchanged: all its settings are angles, pixels and counts. Only
@@ -169,6 +176,9 @@ class FeaturesRefiner(PoseRefiner):
             cache_dir and match_points_only; see the module).
         keyframe_search: "numpy" or "faiss" (exact flat search; relocfw[faiss]): how
             keyframes are found by descriptor.
+        rematch: after a solve that succeeds, match the query again against the
+            `count` keyframes nearest the solved pose, looking its way, and answer that
+            second solve where it succeeds too (see the module).
     """
 
     def __init__(
@@ -190,6 +200,7 @@ class FeaturesRefiner(PoseRefiner):
         ransac_min_iterations: int = POSELIB_MIN_ITERATIONS,
         map_store: str = "memory",
         keyframe_search: str = "numpy",
+        rematch: bool = False,
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -227,6 +238,9 @@ class FeaturesRefiner(PoseRefiner):
         self.keyframe_search = checked_choice("keyframe_search", keyframe_search)
         if self.keyframe_search == "faiss":
             imported_faiss()  # a missing faiss is said now, not after training
+        if not isinstance(rematch, bool):
+            raise ConfigError(f"refine.rematch must be true or false, got {rematch!r}")
+        self.rematch = rematch
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
         # The fitted map: a StructureMap (map_store=memory) or a CompactMap (compact).
         self.structure: StructureMap | None = None
@@ -431,6 +445,7 @@ class FeaturesRefiner(PoseRefiner):
             "map_store",
             "keyframe_search",
             "match_points_only",
+            "rematch",
             *STATE_INTEGERS,
             *STATE_NUMBERS,
         )
@@ -459,6 +474,7 @@ class FeaturesRefiner(PoseRefiner):
         options.setdefault("ransac_min_iterations", POSELIB_MIN_ITERATIONS)
         options.setdefault("map_store", "memory")
         options.setdefault("keyframe_search", "numpy")
+        options.setdefault("rematch", False)
         structure, compact = None, None
         if options["map_store"] == "compact":
             if not options["match_points_only"]:
@@ -539,7 +555,7 @@ class FeaturesRefiner(PoseRefiner):
         prior = self.prior_of(query)
         refined, features = self.attempt(query, camera, prior)
         if self.keyframes != "track":
-            return refined
+            return self.rematched(query, camera, refined, features)
         if refined.fell_back and prior is not None:
             # The track is lost on this frame: the same query again, by retrieval.
             started = time.perf_counter()
@@ -549,8 +565,32 @@ class FeaturesRefiner(PoseRefiner):
                 seconds[part] = seconds.get(part, 0.0) + spent
             seconds["tracking_retry"] = time.perf_counter() - started
             refined = Refined(retry.pose, retry.confidence, retry.fell_back, seconds)
+        refined = self.rematched(query, camera, refined, features)
         self.tracked.record(query.name, refined.pose, refined.fell_back)
         return refined
+
+    def rematched(
+        self,
+        query: RefineQuery,
+        camera: PinholeCamera,
+        first: Refined,
+        features: LocalFeatures | None,
+    ) -> Refined:
+        """With refine.rematch, the query solved again against the keyframes nearest
+        its first answer (the query's features reused); that answer where it succeeds,
+        else the first. Its seconds add both solves per part, the second's in
+        "rematch" too."""
+        if not self.rematch or first.fell_back:
+            return first
+        started = time.perf_counter()
+        second, _ = self.attempt(query, camera, first.pose, features)
+        if second.fell_back:
+            return first
+        seconds = dict(first.seconds)
+        for part, spent in second.seconds.items():
+            seconds[part] = seconds.get(part, 0.0) + spent
+        seconds["rematch"] = time.perf_counter() - started
+        return Refined(second.pose, second.confidence, False, seconds)
 
     def attempt(
         self,

@@ -38,7 +38,7 @@ STATE_CHOICES = {
 STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4, "ransac_min_iterations": 1}
 STATE_NUMBERS = ("ratio", "max_error_px", "image_scale")
 # Options kept as 0 / 1.
-STATE_FLAGS = ("match_points_only",)
+STATE_FLAGS = ("match_points_only", "rematch")
 STATE_LABEL = "refine=features state"
 
 

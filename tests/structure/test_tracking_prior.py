@@ -81,8 +81,10 @@ class ScriptedSolve:
         return StructureAnswer(pose, 50, 80, True, SOLVED_SECONDS, query_features=features)
 
 
-def tracking(small_map, monkeypatch, outcomes, keyframes="track") -> tuple:
-    refiner = FeaturesRefiner(keyframes=keyframes, count=2, max_features=256, quiet=True)
+def tracking(small_map, monkeypatch, outcomes, keyframes="track", rematch=False) -> tuple:
+    refiner = FeaturesRefiner(
+        keyframes=keyframes, count=2, max_features=256, quiet=True, rematch=rematch
+    )
     refiner.fit(small_map, np.asarray(DESCRIPTORS))
     solve = ScriptedSolve(outcomes)
     monkeypatch.setattr(features_refiner, "localize_against", solve)
@@ -166,6 +168,51 @@ def test_a_failed_tracking_attempt_is_retried_by_retrieval_and_its_pose_answered
     assert solve.given_features[1] is None and solve.given_features[2] is not None
     refiner.refine(query("seq-01/frame-000002"))  # the retry's pose is the next prior
     assert solve.keyframes[-1] == NEAR_RETRIED
+
+
+def test_rematch_solves_again_near_the_first_answer_and_answers_the_second(small_map, monkeypatch):
+    refiner, solve = tracking(
+        small_map, monkeypatch, [SOLVED, RETRIED], keyframes="descriptor", rematch=True
+    )
+    answer = refiner.refine(query("seq-01/frame-000000"))
+    assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED]
+    assert not answer.fell_back and answer.pose is RETRIED
+    # The second solve reuses the first's features; both solves' times are counted.
+    assert solve.given_features[0] is None and solve.given_features[1] is not None
+    for part in SOLVED_SECONDS:
+        assert answer.seconds[part] == 2 * SOLVED_SECONDS[part]
+    assert 0.0 < answer.seconds["rematch"] < 1.0
+
+
+def test_rematch_keeps_the_first_answer_when_the_second_fails_and_skips_a_fallback(
+    small_map, monkeypatch
+):
+    refiner, solve = tracking(
+        small_map, monkeypatch, [SOLVED, None, None], keyframes="descriptor", rematch=True
+    )
+    kept = refiner.refine(query("a"))
+    assert not kept.fell_back and kept.pose is SOLVED and "rematch" not in kept.seconds
+    fallen = refiner.refine(query("b"))  # a first solve that fails is not matched again
+    assert fallen.fell_back and fallen.pose is NETWORK_POSE
+    assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED, BY_DESCRIPTOR]
+
+
+def test_rematch_answers_the_track_and_is_kept_in_the_state(small_map, monkeypatch):
+    outcomes = [SOLVED, RETRIED, SOLVED, SOLVED]
+    refiner, solve = tracking(small_map, monkeypatch, outcomes, rematch=True)
+    refiner.refine(query("seq-01/frame-000000"))
+    refiner.refine(query("seq-01/frame-000001"))
+    # The second frame tracks the first frame's rematched answer, RETRIED, then is
+    # matched again near its own.
+    assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED, NEAR_RETRIED, NEAR_SOLVED]
+    loaded = FeaturesRefiner(rematch=False)
+    loaded.load_state(refiner.state())
+    assert loaded.rematch is True
+    older = {k: v for k, v in refiner.state().items() if k != "rematch"}
+    loaded.load_state(older)  # a file from before the option answers without it
+    assert loaded.rematch is False
+    with pytest.raises(ConfigError, match="refine.rematch must be true or false, got 'yes'"):
+        FeaturesRefiner(rematch="yes")
 
 
 def test_reset_forgets_every_stream(small_map, monkeypatch):
