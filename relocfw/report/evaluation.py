@@ -225,9 +225,13 @@ def network_seconds(answer: Localization) -> float:
     refiner's parts add up to the query's time (their medians, the summary's columns,
     need not add up). With queries_at_once > 1 a query's time is its group's share,
     so this part is only meaningful one query at a time."""
-    # "tracking_retry" is the retry's whole time, whose parts are already added into
-    # the others (plugins/features_refiner.py): counted once.
-    parts = (spent for part, spent in answer.refine_seconds.items() if part != "tracking_retry")
+    # "tracking_retry" and "rematch" are a second solve's whole time, whose parts are
+    # already added into the others (plugins/features_refiner.py): counted once.
+    parts = (
+        spent
+        for part, spent in answer.refine_seconds.items()
+        if part not in ("tracking_retry", "rematch")
+    )
     return float(answer.seconds - sum(parts))
 
 

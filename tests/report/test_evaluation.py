@@ -62,7 +62,8 @@ def test_the_network_part_is_the_time_before_the_refiner():
     parts = [
         {"retrieval": 0.001, "features": 0.004, "matching": 0.002, "solve": 0.001},
         {"retrieval": 0.001, "features": 0.010, "matching": 0.004, "solve": 0.001},
-        {"retrieval": 0.002, "features": 0.012, "matching": 0.008, "solve": 0.002},
+        # A second match near the first answer (refine.rematch): likewise.
+        {"retrieval": 0.002, "features": 0.012, "matching": 0.008, "solve": 0.002, "rematch": 0.01},
         # A lost track: the retry's parts are added into the others, and
         # tracking_retry (their sum) must not be counted a second time.
         {"retrieval": 0.002, "features": 0.020, "solve": 0.004, "tracking_retry": 0.010},
