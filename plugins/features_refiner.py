@@ -31,12 +31,14 @@ seconds then add both attempts per part, with the retry's in "tracking_retry". A
 stream without a confident pose (its first frame, or after a fallback) starts from
 retrieval; `reset` forgets every stream.
 
-Matching again (`rematch=true`). Keyframes found by descriptor are the map images
-that look like the query, not always the ones that see what it sees from where it
-stands. After a first solve that succeeds, the query is matched again against the
-`count` keyframes nearest the solved pose, looking its way (its local features
-reused), and the second solve answers where it succeeds too; otherwise the first
-stands. Its seconds add both solves per part, the second's also in "rematch".
+Matching again (`rematch=near` or `union`). Keyframes found by descriptor are the map
+images that look like the query, not always the ones that see what it sees from where
+it stands. After a first solve that succeeds, the query is matched again (its local
+features reused) against the `count` keyframes nearest the solved pose, looking its
+way (`near`), or against those together with the first solve's keyframes (`union`:
+both what looks alike and what stands near), and the second solve answers where it
+succeeds too; otherwise the first stands. Its seconds add both solves per part, the
+second's also in "rematch".
 
 On a map that is not metric (refine.metric=false, set from dataset.metric: an
 unaligned COLMAP model), the default triangulation (refine.triangulation.method=
@@ -91,6 +93,7 @@ from relocfw.core.standardise import ZScore, check_features
 from relocfw.core.values import Pose
 from relocfw.structure import (
     MapView,
+    MapViewpoints,
     StructureMap,
     build_from_colmap_points,
     cached_structure_map,
@@ -176,9 +179,10 @@ class FeaturesRefiner(PoseRefiner):
             cache_dir and match_points_only; see the module).
         keyframe_search: "numpy" or "faiss" (exact flat search; relocfw[faiss]): how
             keyframes are found by descriptor.
-        rematch: after a solve that succeeds, match the query again against the
-            `count` keyframes nearest the solved pose, looking its way, and answer that
-            second solve where it succeeds too (see the module).
+        rematch: "none"; "near" (after a solve that succeeds, match the query again
+            against the `count` keyframes nearest the solved pose, looking its way, and
+            answer that second solve where it succeeds too) or "union" (the same with
+            the first solve's keyframes added); see the module.
     """
 
     def __init__(
@@ -200,7 +204,7 @@ class FeaturesRefiner(PoseRefiner):
         ransac_min_iterations: int = POSELIB_MIN_ITERATIONS,
         map_store: str = "memory",
         keyframe_search: str = "numpy",
-        rematch: bool = False,
+        rematch: str = "none",
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -238,9 +242,7 @@ class FeaturesRefiner(PoseRefiner):
         self.keyframe_search = checked_choice("keyframe_search", keyframe_search)
         if self.keyframe_search == "faiss":
             imported_faiss()  # a missing faiss is said now, not after training
-        if not isinstance(rematch, bool):
-            raise ConfigError(f"refine.rematch must be true or false, got {rematch!r}")
-        self.rematch = rematch
+        self.rematch = checked_choice("rematch", rematch)
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
         # The fitted map: a StructureMap (map_store=memory) or a CompactMap (compact).
         self.structure: StructureMap | None = None
@@ -347,6 +349,7 @@ class FeaturesRefiner(PoseRefiner):
         # go back to the sensor the dataset's poses describe (relocfw.core.sensor_poses).
         self.pose_to_colour = map_pose_to_colour(views, "refine=features")
         self.poses = [colour_pose(view.pose, self.pose_to_colour) for view in views]
+        self.viewpoints = MapViewpoints.of(self.poses)
         map_views = [
             MapView(
                 image=view.image,
@@ -474,7 +477,7 @@ class FeaturesRefiner(PoseRefiner):
         options.setdefault("ransac_min_iterations", POSELIB_MIN_ITERATIONS)
         options.setdefault("map_store", "memory")
         options.setdefault("keyframe_search", "numpy")
-        options.setdefault("rematch", False)
+        options.setdefault("rematch", "none")
         structure, compact = None, None
         if options["map_store"] == "compact":
             if not options["match_points_only"]:
@@ -515,6 +518,7 @@ class FeaturesRefiner(PoseRefiner):
         self.points = keyframe_points
         self.keyframe_index = keyframe_index
         self.poses = poses
+        self.viewpoints = MapViewpoints.of(poses)
         self.camera = camera
         self.structure_source = source
         self.tracked.clear()
@@ -541,7 +545,7 @@ class FeaturesRefiner(PoseRefiner):
         if prior is not None:
             # The map's poses are the colour camera's; the prior is the dataset's sensor's.
             prior = colour_pose(prior, self.pose_to_colour)
-            return list(keyframes_by_pose(self.poses, prior, count))
+            return list(keyframes_by_pose(self.viewpoints, prior, count))
         if self.keyframe_index is not None:
             return self.keyframe_index.nearest(self.zscore, query.descriptor, count)
         return keyframes_by_descriptor(self.zscore, self.points, query.descriptor, count)
@@ -553,19 +557,19 @@ class FeaturesRefiner(PoseRefiner):
             # No map image is near a NaN pose; the network's answer stands, flagged.
             return Refined(query.network_pose, 0.0, True, {"retrieval": 0.0})
         prior = self.prior_of(query)
-        refined, features = self.attempt(query, camera, prior)
+        refined, features, keyframes = self.attempt(query, camera, prior)
         if self.keyframes != "track":
-            return self.rematched(query, camera, refined, features)
+            return self.rematched(query, camera, refined, features, keyframes)
         if refined.fell_back and prior is not None:
             # The track is lost on this frame: the same query again, by retrieval.
             started = time.perf_counter()
-            retry, _ = self.attempt(query, camera, None, features)
+            retry, _, keyframes = self.attempt(query, camera, None, features)
             seconds = dict(refined.seconds)
             for part, spent in retry.seconds.items():
                 seconds[part] = seconds.get(part, 0.0) + spent
             seconds["tracking_retry"] = time.perf_counter() - started
             refined = Refined(retry.pose, retry.confidence, retry.fell_back, seconds)
-        refined = self.rematched(query, camera, refined, features)
+        refined = self.rematched(query, camera, refined, features, keyframes)
         self.tracked.record(query.name, refined.pose, refined.fell_back)
         return refined
 
@@ -575,20 +579,26 @@ class FeaturesRefiner(PoseRefiner):
         camera: PinholeCamera,
         first: Refined,
         features: LocalFeatures | None,
+        first_keyframes: list[int],
     ) -> Refined:
         """With refine.rematch, the query solved again against the keyframes nearest
-        its first answer (the query's features reused); that answer where it succeeds,
-        else the first. Its seconds add both solves per part, the second's in
-        "rematch" too."""
-        if not self.rematch or first.fell_back:
+        its first answer (with `first_keyframes` for union; the query's features
+        reused); that answer where it succeeds, else the first. Its seconds add both
+        solves per part, the second's in "rematch" too."""
+        if self.rematch == "none" or first.fell_back:
             return first
         started = time.perf_counter()
-        second, _ = self.attempt(query, camera, first.pose, features)
+        keyframes = self.keyframes_near(query, first.pose)
+        if self.rematch == "union":
+            keyframes = list(dict.fromkeys([*first_keyframes, *keyframes]))
+        chosen = time.perf_counter() - started
+        second, _, _ = self.attempt(query, camera, None, features, keyframes)
         if second.fell_back:
             return first
         seconds = dict(first.seconds)
         for part, spent in second.seconds.items():
             seconds[part] = seconds.get(part, 0.0) + spent
+        seconds["retrieval"] = seconds.get("retrieval", 0.0) + chosen  # by pose, above
         seconds["rematch"] = time.perf_counter() - started
         return Refined(second.pose, second.confidence, False, seconds)
 
@@ -598,12 +608,16 @@ class FeaturesRefiner(PoseRefiner):
         camera: PinholeCamera,
         prior: Pose | None,
         features: LocalFeatures | None = None,
-    ) -> tuple[Refined, LocalFeatures | None]:
-        """One solve against the keyframes near `prior` (None: by descriptor), and the
-        query's local features it used (`features`: extracted already, by an earlier
-        attempt of the same query)."""
+        keyframes: list[int] | None = None,
+    ) -> tuple[Refined, LocalFeatures | None, list[int]]:
+        """One solve against the keyframes near `prior` (None: by descriptor; or the
+        map images `keyframes`, where given), the query's local features it used
+        (`features`: extracted already, by an earlier attempt of the same query) and
+        the keyframes (map image indices)."""
         started = time.perf_counter()
-        keyframes = self.keyframes_near(query, prior)
+        if keyframes is None:
+            keyframes = self.keyframes_near(query, prior)
+        chosen = list(keyframes)
         retrieval = time.perf_counter() - started
         structure, match_index = self.structure, self.match_index
         if self.compact is not None:
@@ -632,4 +646,4 @@ class FeaturesRefiner(PoseRefiner):
         else:
             answered = reference_pose(answer.pose, self.pose_to_colour)
             found = Refined(answered, float(answer.inliers), False, seconds)
-        return found, answer.query_features
+        return found, answer.query_features, chosen

@@ -23,7 +23,12 @@ from relocfw.structure.features import LocalFeatures, extract_rootsift
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
 from relocfw.structure.matching import match_against_views, mutual_nearest_neighbours
-from relocfw.structure.query_solver import StructureAnswer, keyframes_by_pose, localize_against
+from relocfw.structure.query_solver import (
+    MapViewpoints,
+    StructureAnswer,
+    keyframes_by_pose,
+    localize_against,
+)
 from relocfw.structure.structure_map import (
     SkippedView,
     StructureMap,
@@ -54,6 +59,7 @@ __all__ = [
     "cached_structure_map",
     "extract_rootsift",
     "keyframes_by_pose",
+    "MapViewpoints",
     "lift_keypoints",
     "localize_against",
     "match_against_views",

@@ -28,17 +28,21 @@ KEYFRAMES = ("descriptor", "pose", "track")
 # written before they existed and answers as memory / numpy.
 MAP_STORES = ("memory", "compact")
 KEYFRAME_SEARCHES = ("numpy", "faiss")
+# Whether and how a solved query is matched again (plugins/features_refiner.py); a file
+# without it was written before it existed and answers as none.
+REMATCHES = ("none", "near", "union")
 # The options stored as an index into their choices.
 STATE_CHOICES = {
     "keyframes": KEYFRAMES,
     "map_store": MAP_STORES,
     "keyframe_search": KEYFRAME_SEARCHES,
+    "rematch": REMATCHES,
 }
 # The integer options a state keeps, with their least values, and the numbers.
 STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4, "ransac_min_iterations": 1}
 STATE_NUMBERS = ("ratio", "max_error_px", "image_scale")
 # Options kept as 0 / 1.
-STATE_FLAGS = ("match_points_only", "rematch")
+STATE_FLAGS = ("match_points_only",)
 STATE_LABEL = "refine=features state"
 
 

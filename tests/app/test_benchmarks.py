@@ -390,3 +390,41 @@ def test_structure_scale(tmp_path):
     assert large["disk_bytes_per_image"] < small["disk_bytes_per_image"]  # centres shared
     assert large["query"]["failures"] == 0
     assert set(report["done_when"]) >= {"query_growth_met", "bytes_met"}
+
+
+@pytest.mark.skipif(not REDKITCHEN.is_dir(), reason=f"{REDKITCHEN} is absent")
+def test_block_consistency(tmp_path):
+    pytest.importorskip("poselib", reason="relocfw[structure] not installed")
+    # Every 20th frame mapped (35 images), every 50th a query (14), one keyframe.
+    report = run_script(
+        "block_consistency.py",
+        tmp_path / "b.json",
+        "--step",
+        "20",
+        "--query-step",
+        "50",
+        "--keyframes",
+        "3",
+        "--exclude",
+        "5",
+        "--near",
+        "10",
+    )
+    assert report["map_images"] == 35
+    pairs = report["pairs"]
+    # With every block within 10 m, each query is solved against all seven blocks.
+    assert len(pairs) == 49 and all(p["queries"] == 2 for p in pairs)
+    own = [p for p in pairs if p["apart"] == 0]
+    assert len(own) == 7 and set(report["by_blocks_apart"]) == {str(a) for a in range(7)}
+    solved = [p for p in pairs if p["median_position_m"] is not None]
+    assert solved and all(0 <= p["median_shift_m"] <= 10 for p in solved)
+
+
+def test_int8_deviation(tmp_path):
+    pytest.importorskip("onnxruntime", reason="relocfw[onnx] not installed")
+    report = run_script("int8_deviation.py", tmp_path / "i.json", "--opens", "3")
+    outputs = report["outputs"]
+    assert set(outputs) == {"positions", "quaternions", "features"}
+    for row in outputs.values():  # a genuine graph within its bound, another seed's beyond
+        assert row["genuine_largest"] <= row["bound"]
+    assert outputs["quaternions"]["other_weights_smallest"] > outputs["quaternions"]["bound"]

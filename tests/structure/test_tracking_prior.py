@@ -81,7 +81,7 @@ class ScriptedSolve:
         return StructureAnswer(pose, 50, 80, True, SOLVED_SECONDS, query_features=features)
 
 
-def tracking(small_map, monkeypatch, outcomes, keyframes="track", rematch=False) -> tuple:
+def tracking(small_map, monkeypatch, outcomes, keyframes="track", rematch="none") -> tuple:
     refiner = FeaturesRefiner(
         keyframes=keyframes, count=2, max_features=256, quiet=True, rematch=rematch
     )
@@ -172,7 +172,7 @@ def test_a_failed_tracking_attempt_is_retried_by_retrieval_and_its_pose_answered
 
 def test_rematch_solves_again_near_the_first_answer_and_answers_the_second(small_map, monkeypatch):
     refiner, solve = tracking(
-        small_map, monkeypatch, [SOLVED, RETRIED], keyframes="descriptor", rematch=True
+        small_map, monkeypatch, [SOLVED, RETRIED], keyframes="descriptor", rematch="near"
     )
     answer = refiner.refine(query("seq-01/frame-000000"))
     assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED]
@@ -188,7 +188,7 @@ def test_rematch_keeps_the_first_answer_when_the_second_fails_and_skips_a_fallba
     small_map, monkeypatch
 ):
     refiner, solve = tracking(
-        small_map, monkeypatch, [SOLVED, None, None], keyframes="descriptor", rematch=True
+        small_map, monkeypatch, [SOLVED, None, None], keyframes="descriptor", rematch="near"
     )
     kept = refiner.refine(query("a"))
     assert not kept.fell_back and kept.pose is SOLVED and "rematch" not in kept.seconds
@@ -197,22 +197,39 @@ def test_rematch_keeps_the_first_answer_when_the_second_fails_and_skips_a_fallba
     assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED, BY_DESCRIPTOR]
 
 
+def test_rematch_union_adds_the_first_solves_keyframes(small_map, monkeypatch):
+    refiner, solve = tracking(
+        small_map, monkeypatch, [SOLVED, RETRIED], keyframes="descriptor", rematch="union"
+    )
+    answer = refiner.refine(query("a"))
+    assert solve.keyframes == [BY_DESCRIPTOR, BY_DESCRIPTOR + NEAR_SOLVED]
+    assert answer.pose is RETRIED
+    # A keyframe in both sets is matched once.
+    refiner, solve = tracking(
+        small_map, monkeypatch, [RETRIED, SOLVED], keyframes="pose", rematch="union"
+    )
+    refiner.refine(query("a"))  # the network's pose at x = 0: images 2, 1
+    assert solve.keyframes == [[2, 1], [2, 1, 3]]  # near RETRIED (x = 0.1): 2, 3
+
+
 def test_rematch_answers_the_track_and_is_kept_in_the_state(small_map, monkeypatch):
     outcomes = [SOLVED, RETRIED, SOLVED, SOLVED]
-    refiner, solve = tracking(small_map, monkeypatch, outcomes, rematch=True)
+    refiner, solve = tracking(small_map, monkeypatch, outcomes, rematch="near")
     refiner.refine(query("seq-01/frame-000000"))
     refiner.refine(query("seq-01/frame-000001"))
     # The second frame tracks the first frame's rematched answer, RETRIED, then is
     # matched again near its own.
     assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED, NEAR_RETRIED, NEAR_SOLVED]
-    loaded = FeaturesRefiner(rematch=False)
+    loaded = FeaturesRefiner(rematch="union")
     loaded.load_state(refiner.state())
-    assert loaded.rematch is True
+    assert loaded.rematch == "near"
     older = {k: v for k, v in refiner.state().items() if k != "rematch"}
     loaded.load_state(older)  # a file from before the option answers without it
-    assert loaded.rematch is False
-    with pytest.raises(ConfigError, match="refine.rematch must be true or false, got 'yes'"):
-        FeaturesRefiner(rematch="yes")
+    assert loaded.rematch == "none"
+    with pytest.raises(DataError, match="rematch must be in 0..2"):
+        loaded.load_state({**refiner.state(), "rematch": torch.tensor(3)})
+    with pytest.raises(ConfigError, match="refine.rematch must be one of none, near, union"):
+        FeaturesRefiner(rematch=True)
 
 
 def test_reset_forgets_every_stream(small_map, monkeypatch):
