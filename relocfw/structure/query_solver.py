@@ -221,7 +221,8 @@ def localize_against(
 class MapViewpoints:
     """Where each map image stands and which way it looks, computed once per map, so
     that choosing keyframes by pose is two array operations a query, not a quaternion
-    per map image (about 7 ms a query on a 400-image map).
+    per map image (400 Red Kitchen map poses: 12 ms a query from the poses, 0.06 ms
+    from their viewpoints, measured beside another job).
 
     Attributes:
         positions: [M, 3] camera positions in the world.
