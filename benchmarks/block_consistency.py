@@ -101,6 +101,8 @@ def main() -> None:
                 members = np.flatnonzero(block_of == map_block)
                 if map_block == query_block:
                     members = members[np.abs(index_of[members] - number) > args.exclude]
+                if not len(members):
+                    continue  # --exclude left the query's own block empty
                 poses = [structure.poses[i] for i in members]
                 chosen = members[keyframes_by_pose(poses, frame.pose, args.keyframes)]
                 nearest = np.linalg.norm(structure.poses[chosen[0]].position - frame.pose.position)
@@ -136,8 +138,9 @@ def main() -> None:
             angles = np.array([a for _, a in mine])
             solved = np.isfinite(shifts).all(axis=1)
             errors = np.linalg.norm(shifts[solved], axis=1)
-            within = (np.linalg.norm(np.nan_to_num(shifts, nan=np.inf), axis=1) <= 0.05) & (
-                np.nan_to_num(angles, nan=np.inf) <= 5.0
+            # Strictly within, as relocfw's bands count (relocfw.report.evaluation).
+            within = (np.linalg.norm(np.nan_to_num(shifts, nan=np.inf), axis=1) < 0.05) & (
+                np.nan_to_num(angles, nan=np.inf) < 5.0
             )
             rows.append(
                 {
@@ -163,7 +166,7 @@ def main() -> None:
                     np.median([r["median_position_m"] for r in chosen])
                 ),
                 "median_of_median_shift_m": float(np.median([r["median_shift_m"] for r in chosen])),
-                "solves": int(sum(r["queries"] for r in chosen)),
+                "queries": int(sum(r["queries"] for r in chosen)),  # counted, solved or not
                 "mean_within_5cm_5deg": float(np.mean([r["within_5cm_5deg"] for r in chosen])),
             }
     report = {
@@ -175,10 +178,10 @@ def main() -> None:
         "by_blocks_apart": by_apart,
     }
     write_json(report, args.out)
-    print("blocks apart | pairs | solves | median position (m) | median shift (m) | 5 cm / 5 deg")
+    print("blocks apart | pairs | queries | median position (m) | median shift (m) | 5 cm / 5 deg")
     for apart, row in by_apart.items():
         print(
-            f"{apart} | {row['pairs']} | {row['solves']} | "
+            f"{apart} | {row['pairs']} | {row['queries']} | "
             f"{row['median_of_median_position_m']:.3f} | "
             f"{row['median_of_median_shift_m']:.3f} | {100 * row['mean_within_5cm_5deg']:.0f}%"
         )

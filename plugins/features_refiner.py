@@ -248,6 +248,8 @@ class FeaturesRefiner(PoseRefiner):
         self.structure: StructureMap | None = None
         self.compact: CompactMap | None = None
         self.skipped: tuple = ()
+        # Where the map images stand and look (keyframes by pose), on first use.
+        self.viewpoints: MapViewpoints | None = None
         self.keyframe_index: FaissKeyframeSearch | None = None
 
     def check_map_store(self) -> None:
@@ -349,7 +351,7 @@ class FeaturesRefiner(PoseRefiner):
         # go back to the sensor the dataset's poses describe (relocfw.core.sensor_poses).
         self.pose_to_colour = map_pose_to_colour(views, "refine=features")
         self.poses = [colour_pose(view.pose, self.pose_to_colour) for view in views]
-        self.viewpoints = MapViewpoints.of(self.poses)
+        self.viewpoints = None  # the new map's, computed on first use
         map_views = [
             MapView(
                 image=view.image,
@@ -518,7 +520,7 @@ class FeaturesRefiner(PoseRefiner):
         self.points = keyframe_points
         self.keyframe_index = keyframe_index
         self.poses = poses
-        self.viewpoints = MapViewpoints.of(poses)
+        self.viewpoints = None
         self.camera = camera
         self.structure_source = source
         self.tracked.clear()
@@ -545,6 +547,8 @@ class FeaturesRefiner(PoseRefiner):
         if prior is not None:
             # The map's poses are the colour camera's; the prior is the dataset's sensor's.
             prior = colour_pose(prior, self.pose_to_colour)
+            if self.viewpoints is None:  # once per map, and only where poses choose
+                self.viewpoints = MapViewpoints.of(self.poses)
             return list(keyframes_by_pose(self.viewpoints, prior, count))
         if self.keyframe_index is not None:
             return self.keyframe_index.nearest(self.zscore, query.descriptor, count)
@@ -584,7 +588,9 @@ class FeaturesRefiner(PoseRefiner):
         """With refine.rematch, the query solved again against the keyframes nearest
         its first answer (with `first_keyframes` for union; the query's features
         reused); that answer where it succeeds, else the first. Its seconds add both
-        solves per part, the second's in "rematch" too."""
+        solves per part, succeeded or not, the second's whole time in "rematch" too.
+        Where the second keyframes are the first's, the first answer stands unsolved
+        again (the same matches would be solved twice)."""
         if self.rematch == "none" or first.fell_back:
             return first
         started = time.perf_counter()
@@ -592,15 +598,17 @@ class FeaturesRefiner(PoseRefiner):
         if self.rematch == "union":
             keyframes = list(dict.fromkeys([*first_keyframes, *keyframes]))
         chosen = time.perf_counter() - started
-        second, _, _ = self.attempt(query, camera, None, features, keyframes)
-        if second.fell_back:
-            return first
         seconds = dict(first.seconds)
+        seconds["retrieval"] = seconds.get("retrieval", 0.0) + chosen  # by pose, above
+        if set(keyframes) == set(first_keyframes):
+            seconds["rematch"] = time.perf_counter() - started
+            return Refined(first.pose, first.confidence, False, seconds)
+        second, _, _ = self.attempt(query, camera, None, features, keyframes)
         for part, spent in second.seconds.items():
             seconds[part] = seconds.get(part, 0.0) + spent
-        seconds["retrieval"] = seconds.get("retrieval", 0.0) + chosen  # by pose, above
         seconds["rematch"] = time.perf_counter() - started
-        return Refined(second.pose, second.confidence, False, seconds)
+        answer = first if second.fell_back else second
+        return Refined(answer.pose, answer.confidence, False, seconds)
 
     def attempt(
         self,

@@ -196,7 +196,8 @@ def test_engine_cost(tmp_path):
     # The full and maps graphs, torch's samples, and a search for the int8 scout. The
     # sweep, not the GA: float32 engines differ from torch in the 7th digit, which on
     # another CPU flipped one near-tie in a GA's ranking and so its whole later search
-    # (CI: the same crop in 1 of 2 queries); a sweep's fixed windows keep the argmin.
+    # (CI: the same crop in 1 of 2 queries). A sweep scores fixed windows, so only a
+    # tie between its two best could flip it; the GA still runs in the threads study.
     methods = ["centre", "mc kendall x40", "sweep plain"]
     report = run_script(
         "engine_cost.py",
@@ -395,7 +396,7 @@ def test_structure_scale(tmp_path):
 @pytest.mark.skipif(not REDKITCHEN.is_dir(), reason=f"{REDKITCHEN} is absent")
 def test_block_consistency(tmp_path):
     pytest.importorskip("poselib", reason="relocfw[structure] not installed")
-    # Every 20th frame mapped (35 images), every 50th a query (14), one keyframe.
+    # Every 20th frame mapped (35 images), every 50th a query (14), three keyframes.
     report = run_script(
         "block_consistency.py",
         tmp_path / "b.json",

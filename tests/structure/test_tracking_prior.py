@@ -22,7 +22,12 @@ from relocfw.core.camera import SEVENSCENES_DEFAULT
 from relocfw.core.refinement import RefineQuery
 from relocfw.plugins import features_refiner
 from relocfw.plugins.features_refiner import FeaturesRefiner
-from relocfw.structure.query_solver import StructureAnswer, keyframes_by_pose, localize_against
+from relocfw.structure.query_solver import (
+    MapViewpoints,
+    StructureAnswer,
+    keyframes_by_pose,
+    localize_against,
+)
 from relocfw.structure.tracking_prior import stream_of
 from tests.cli_runs import relocfw_here
 from tests.conftest import TINY_OVERRIDES
@@ -191,10 +196,35 @@ def test_rematch_keeps_the_first_answer_when_the_second_fails_and_skips_a_fallba
         small_map, monkeypatch, [SOLVED, None, None], keyframes="descriptor", rematch="near"
     )
     kept = refiner.refine(query("a"))
-    assert not kept.fell_back and kept.pose is SOLVED and "rematch" not in kept.seconds
+    assert not kept.fell_back and kept.pose is SOLVED and kept.confidence == 50.0
+    # The failed second solve's time is counted, not lost into the network's part.
+    for part in FAILED_SECONDS:
+        assert kept.seconds[part] == SOLVED_SECONDS[part] + FAILED_SECONDS[part]
+    assert 0.0 < kept.seconds["rematch"] < 1.0
     fallen = refiner.refine(query("b"))  # a first solve that fails is not matched again
     assert fallen.fell_back and fallen.pose is NETWORK_POSE
     assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED, BY_DESCRIPTOR]
+
+
+def test_rematch_does_not_solve_the_same_keyframes_again(small_map, monkeypatch):
+    # keyframes=pose at x = 0 gives images 2, 1; a first answer there chooses them again.
+    refiner, solve = tracking(
+        small_map, monkeypatch, [NETWORK_POSE], keyframes="pose", rematch="near"
+    )
+    answer = refiner.refine(query("a"))
+    assert solve.keyframes == [[2, 1]]
+    assert answer.pose is NETWORK_POSE and not answer.fell_back
+    assert answer.seconds["solve"] == SOLVED_SECONDS["solve"] and "rematch" in answer.seconds
+
+
+def test_map_viewpoints_choose_as_the_poses_do(small_map):
+    poses = [view.pose for view in small_map]
+    viewpoints = MapViewpoints.of(poses)
+    assert len(viewpoints) == 5 and viewpoints.positions.shape == (5, 3)
+    for prior in (SOLVED, RETRIED, NETWORK_POSE):
+        assert keyframes_by_pose(viewpoints, prior, 3) == keyframes_by_pose(poses, prior, 3)
+    with pytest.raises(DataError, match="a StructureMap or a sequence of Poses"):
+        MapViewpoints.of([poses[0], "not a pose"])
 
 
 def test_rematch_union_adds_the_first_solves_keyframes(small_map, monkeypatch):
