@@ -77,10 +77,18 @@ def assert_same_answers(got: list, expected: list, metres: float, degrees: float
         assert orientation_error_deg(a.pose.quaternion, b.pose.quaternion) <= degrees
 
 
-@pytest.mark.parametrize("keyframes", ["descriptor", "pose", "track"])
-def test_a_compact_map_answers_as_the_map_in_memory(synthetic_scene, cache_dir, keyframes):
-    memory = fitted(synthetic_scene, cache_dir, keyframes=keyframes)
-    compact = fitted(synthetic_scene, cache_dir, keyframes=keyframes, map_store="compact")
+@pytest.mark.parametrize(
+    "keyframes, rematch",
+    [("descriptor", "none"), ("pose", "none"), ("track", "none"), ("pose", "union")],
+)
+def test_a_compact_map_answers_as_the_map_in_memory(synthetic_scene, cache_dir, keyframes, rematch):
+    # rematch=union: the compact store renumbers a query's keyframes; the union must
+    # still be of map indices (here views 1, 2 near the network's pose, then 1, 0 near
+    # the answer: a second solve over all three).
+    memory = fitted(synthetic_scene, cache_dir, keyframes=keyframes, rematch=rematch)
+    compact = fitted(
+        synthetic_scene, cache_dir, keyframes=keyframes, map_store="compact", rematch=rematch
+    )
     # The compact refiner holds no StructureMap: its map is the mapped folder.
     assert compact.structure is None and isinstance(compact.compact, CompactMap)
     assert compact.compact.folder.parent == cache_dir / "structure"
@@ -93,6 +101,9 @@ def test_a_compact_map_answers_as_the_map_in_memory(synthetic_scene, cache_dir, 
     assert compact.keyframes_of(queries(synthetic_scene)[0]) == memory.keyframes_of(
         queries(synthetic_scene)[0]
     )
+    if rematch == "union":
+        assert "rematch" in got[0].seconds and "rematch" in expected[0].seconds
+        assert got[0].seconds["solve"] > 0 and got[0].confidence == expected[0].confidence
 
 
 def test_the_compact_folder_is_written_once_and_reused(synthetic_scene, cache_dir, capsys):

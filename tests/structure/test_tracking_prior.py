@@ -242,6 +242,25 @@ def test_rematch_union_adds_the_first_solves_keyframes(small_map, monkeypatch):
     assert solve.keyframes == [[2, 1], [2, 1, 3]]  # near RETRIED (x = 0.1): 2, 3
 
 
+def test_rematch_union_after_a_lost_track_adds_the_retrys_keyframes(small_map, monkeypatch):
+    # Frame 1: by descriptor, then union near SOLVED. Frame 2: the track near frame 1's
+    # answer fails, the retry by descriptor solves RETRIED, and the union adds the
+    # retry's keyframes (not the failed track's) to those near RETRIED.
+    outcomes = [SOLVED, SOLVED, None, RETRIED, RETRIED]
+    refiner, solve = tracking(small_map, monkeypatch, outcomes, rematch="union")
+    refiner.refine(query("seq-01/frame-000000"))
+    answer = refiner.refine(query("seq-01/frame-000001"))
+    assert solve.keyframes == [
+        BY_DESCRIPTOR,
+        BY_DESCRIPTOR + NEAR_SOLVED,
+        NEAR_SOLVED,
+        BY_DESCRIPTOR,
+        BY_DESCRIPTOR + NEAR_RETRIED,
+    ]
+    assert answer.pose is RETRIED and not answer.fell_back
+    assert "tracking_retry" in answer.seconds and "rematch" in answer.seconds
+
+
 def test_rematch_answers_the_track_and_is_kept_in_the_state(small_map, monkeypatch):
     outcomes = [SOLVED, RETRIED, SOLVED, SOLVED]
     refiner, solve = tracking(small_map, monkeypatch, outcomes, rematch="near")
