@@ -35,33 +35,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import write_json  # benchmarks/, the script's own folder
+from common import LazyViews, write_json  # benchmarks/, the script's own folder
 
 from relocfw.core.geometry import orientation_error_deg
 from relocfw.core.imaging import read_rgb
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.structure import build_from_depth, keyframes_by_pose, localize_against
 from relocfw.structure.features import extract_rootsift
-from relocfw.structure.map_view import MapView
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "7scenes-redkitchen"
 BLOCKS = range(1, 8)
-
-
-def views_of(frames: list) -> list[MapView]:
-    return [
-        MapView(
-            read_rgb(f.image_path),
-            f.pose,
-            f.camera,
-            f.depth_path,
-            f.name,
-            f.depth_units_per_metre,
-            depth_camera=f.depth_camera,
-            depth_to_colour=f.depth_to_colour,
-        )
-        for f in frames
-    ]
 
 
 def main() -> None:
@@ -84,7 +67,7 @@ def main() -> None:
     mapped = [(block, f) for block in BLOCKS for f in frames[block][:: args.step]]
     started = time.perf_counter()
     structure = build_from_depth(
-        views_of([f for _, f in mapped]), args.max_features, True, args.image_scale
+        LazyViews([f for _, f in mapped]), args.max_features, True, args.image_scale
     )
     build_seconds = time.perf_counter() - started
     block_of = np.array([block for block, _ in mapped])

@@ -1,10 +1,12 @@
-"""What the benchmarks share: views of the synthetic room, writing their JSON."""
+"""What the benchmarks share: views of the synthetic room, map views of dataset frames
+read on demand, writing their JSON."""
 
 from __future__ import annotations
 
 import importlib
 import json
 import os
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +14,7 @@ import torch
 
 from relocfw import CropSearch, Relocalizer
 from relocfw.core.geometry import pose_from_matrix
+from relocfw.core.imaging import read_rgb
 from relocfw.core.values import Pose
 from relocfw.data.frames import Frame
 from relocfw.data.room import Room, RoomRenderer
@@ -22,9 +25,34 @@ from relocfw.data.synthetic import (
     scene_laps,
 )
 from relocfw.model.checkpoints import write_text_atomic
+from relocfw.structure.map_view import MapView
 
 # Where relocfw caches scenes and checkpoints, as the CLI's cache_dir default reads it.
 DEFAULT_CACHE = Path(os.environ.get("RELOCFW_CACHE", "~/.cache/relocfw"))
+
+
+class LazyViews(Sequence):
+    """Map views of dataset frames that read their image when asked (the structure
+    builders read each once, in order), so the map's images are never all in memory."""
+
+    def __init__(self, frames: list[Frame]) -> None:
+        self.frames = frames
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __getitem__(self, index: int) -> MapView:  # type: ignore[override]
+        frame = self.frames[index]
+        return MapView(
+            read_rgb(frame.image_path),
+            frame.pose,
+            frame.camera,
+            frame.depth_path,
+            frame.name,
+            frame.depth_units_per_metre,
+            depth_camera=frame.depth_camera,
+            depth_to_colour=frame.depth_to_colour,
+        )
 
 
 def render_views(

@@ -33,12 +33,11 @@ import dataclasses
 import platform
 import tempfile
 import time
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import write_json
+from benchmarks.common import LazyViews, write_json
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.geometry import orientation_error_deg, position_error
 from relocfw.core.imaging import read_rgb
@@ -58,7 +57,6 @@ from relocfw.structure import (
 from relocfw.structure.colmap_structure import build_from_colmap_points
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_quality import depth_agreement, point_share
-from relocfw.structure.map_view import MapView
 from relocfw.structure.structure_map import depth_of_view
 
 ROOT = Path("/work/shared/data/7scenes-redkitchen")
@@ -68,29 +66,6 @@ COLOUR_CAMERA = PinholeCamera(525.0, 525.0, 320.0, 240.0, 640, 480)
 COLMAP_CAMERA = ColmapCamera(1, "PINHOLE", 640, 480, (525.0, 525.0, 320.5, 240.5))
 WITHIN_M = 0.05
 WITHIN_DEG = 5.0
-
-
-class LazyViews(Sequence):
-    """Map views that read their image when asked (each builder reads each once)."""
-
-    def __init__(self, frames: list[Frame]) -> None:
-        self.frames = frames
-
-    def __len__(self) -> int:
-        return len(self.frames)
-
-    def __getitem__(self, index: int) -> MapView:  # type: ignore[override]
-        frame = self.frames[index]
-        return MapView(
-            read_rgb(frame.image_path),
-            frame.pose,
-            frame.camera,
-            frame.depth_path,
-            frame.name,
-            frame.depth_units_per_metre,
-            depth_camera=frame.depth_camera,
-            depth_to_colour=frame.depth_to_colour,
-        )
 
 
 def colmap_observations(
