@@ -37,8 +37,10 @@ it stands. After a first solve that succeeds, the query is matched again (its lo
 features reused) against the `count` keyframes nearest the solved pose, looking its
 way (`near`), or against those together with the first solve's keyframes (`union`:
 both what looks alike and what stands near), and the second solve answers where it
-succeeds too; otherwise the first stands. Its seconds add both solves per part, the
-second's also in "rematch".
+succeeds too; otherwise the first stands. With `rematch_answer=more_inliers` the
+second answers only where it has at least as many inliers (distinct map points) as
+the first: a second keyframe set that sees less of the query is then not trusted
+over the first. Its seconds add both solves per part, the second's also in "rematch".
 
 On a map that is not metric (refine.metric=false, set from dataset.metric: an
 unaligned COLMAP model), the default triangulation (refine.triangulation.method=
@@ -183,6 +185,9 @@ class FeaturesRefiner(PoseRefiner):
             against the `count` keyframes nearest the solved pose, looking its way, and
             answer that second solve where it succeeds too) or "union" (the same with
             the first solve's keyframes added); see the module.
+        rematch_answer: which solve answers a query matched again: "second" (the
+            second where it succeeds) or "more_inliers" (the second where it succeeds
+            with at least as many inliers as the first, else the first).
     """
 
     def __init__(
@@ -205,6 +210,7 @@ class FeaturesRefiner(PoseRefiner):
         map_store: str = "memory",
         keyframe_search: str = "numpy",
         rematch: str = "none",
+        rematch_answer: str = "second",
     ) -> None:
         # Every option is checked here, before training and the map's structure, and
         # named as the command line spells it (refine.ratio, ...).
@@ -243,6 +249,7 @@ class FeaturesRefiner(PoseRefiner):
         if self.keyframe_search == "faiss":
             imported_faiss()  # a missing faiss is said now, not after training
         self.rematch = checked_choice("rematch", rematch)
+        self.rematch_answer = checked_choice("rematch_answer", rematch_answer)
         self.tracked = LastConfidentPoses()  # keyframes=track's prior, per stream
         # The fitted map: a StructureMap (map_store=memory) or a CompactMap (compact).
         self.structure: StructureMap | None = None
@@ -451,6 +458,7 @@ class FeaturesRefiner(PoseRefiner):
             "keyframe_search",
             "match_points_only",
             "rematch",
+            "rematch_answer",
             *STATE_INTEGERS,
             *STATE_NUMBERS,
         )
@@ -480,6 +488,7 @@ class FeaturesRefiner(PoseRefiner):
         options.setdefault("map_store", "memory")
         options.setdefault("keyframe_search", "numpy")
         options.setdefault("rematch", "none")
+        options.setdefault("rematch_answer", "second")
         structure, compact = None, None
         if options["map_store"] == "compact":
             if not options["match_points_only"]:
@@ -587,7 +596,8 @@ class FeaturesRefiner(PoseRefiner):
     ) -> Refined:
         """With refine.rematch, the query solved again against the keyframes nearest
         its first answer (with `first_keyframes` for union; the query's features
-        reused); that answer where it succeeds, else the first. Its seconds add both
+        reused); that answer where it succeeds (and, with rematch_answer=more_inliers,
+        has at least the first's inliers), else the first. Its seconds add both
         solves per part, succeeded or not, the second's whole time in "rematch" too.
         Where the second keyframes are the first's, the first answer stands unsolved
         again (the same matches would be solved twice)."""
@@ -607,8 +617,15 @@ class FeaturesRefiner(PoseRefiner):
         for part, spent in second.seconds.items():
             seconds[part] = seconds.get(part, 0.0) + spent
         seconds["rematch"] = time.perf_counter() - started
-        answer = first if second.fell_back else second
+        answer = first if second.fell_back or not self.second_answers(first, second) else second
         return Refined(answer.pose, answer.confidence, False, seconds)
+
+    def second_answers(self, first: Refined, second: Refined) -> bool:
+        """Whether a second solve that succeeded answers instead of the first (both
+        confidences are inlier counts, one per query keypoint)."""
+        if self.rematch_answer == "more_inliers":
+            return second.confidence >= first.confidence
+        return True
 
     def attempt(
         self,

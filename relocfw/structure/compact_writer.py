@@ -115,7 +115,8 @@ class CompactMapWriter:
         Raises:
             DataError: naming the image when N is not its count, the codes are not
                 the codec's, or a point is not finite or not in front of the camera
-                in the stored dtype (float16 ends at 65504).
+                (float16 ends at 65504; a point nearer than its smallest z in front
+                is stored at that z).
         """
         if self.added >= len(self.counts):
             raise DataError(f"image {name!r}: all {len(self.counts)} images are written")
@@ -133,6 +134,11 @@ class CompactMapWriter:
             )
         with np.errstate(over="ignore"):  # an overflow is the check below's to name
             stored = points.astype(self.point_dtype)
+        # A point in front by less than half the dtype's smallest step (3e-8 in float16)
+        # rounds to z = 0; it keeps the smallest z in front instead, within the same
+        # rounding every other coordinate gets.
+        underflow = (points[:, 2] > 0) & (stored[:, 2] <= 0)
+        stored[underflow, 2] = np.finfo(self.point_dtype).smallest_subnormal
         if not (np.isfinite(stored).all() and (stored[:, 2] > 0).all()):
             raise DataError(
                 f"image {name!r}: a point is not finite or not in front of the camera as "

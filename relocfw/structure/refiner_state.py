@@ -31,12 +31,16 @@ KEYFRAME_SEARCHES = ("numpy", "faiss")
 # Whether and how a solved query is matched again (plugins/features_refiner.py); a file
 # without it was written before it existed and answers as none.
 REMATCHES = ("none", "near", "union")
+# Which of the two solves answers a matched-again query: the second where it succeeds,
+# or the one with more inliers (one per query keypoint); a file without it answers second.
+REMATCH_ANSWERS = ("second", "more_inliers")
 # The options stored as an index into their choices.
 STATE_CHOICES = {
     "keyframes": KEYFRAMES,
     "map_store": MAP_STORES,
     "keyframe_search": KEYFRAME_SEARCHES,
     "rematch": REMATCHES,
+    "rematch_answer": REMATCH_ANSWERS,
 }
 # The integer options a state keeps, with their least values, and the numbers.
 STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4, "ransac_min_iterations": 1}

@@ -204,6 +204,23 @@ def test_a_point_beyond_float16_is_named(depth_structure, tmp_path):
     assert not (tmp_path / "map").exists()
 
 
+def test_a_point_just_in_front_stays_in_front_in_float16(depth_structure, tmp_path):
+    # z = 1e-9 rounds to 0 in float16; it is kept at float16's smallest z in front.
+    pose, camera = depth_structure.poses[0], depth_structure.cameras[0]
+    near = np.array([[0.5, -0.25, 1e-9], [0.0, 0.0, 2.0]])
+    with CompactMapWriter(tmp_path / "map", [2], grid_codec()) as writer:
+        writer.add(np.zeros((2, 128), np.uint8), near, pose, camera, "near")
+    stored = CompactMap.open(tmp_path / "map").points
+    smallest = np.finfo(np.float16).smallest_subnormal
+    assert stored[0].tolist() == [0.5, -0.25, smallest] and stored[1].tolist() == [0, 0, 2]
+    behind = np.array([[0.0, 0.0, -1e-9]])  # behind stays refused
+    with (
+        pytest.raises(DataError, match="image 'behind': a point is not finite"),
+        CompactMapWriter(tmp_path / "other", [1], grid_codec()) as writer,
+    ):
+        writer.add(np.zeros((1, 128), np.uint8), behind, pose, camera, "behind")
+
+
 def test_a_folder_that_is_not_a_map_is_never_replaced(tmp_path):
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("keep")

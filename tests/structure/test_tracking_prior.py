@@ -67,7 +67,8 @@ def small_map(tmp_path_factory: pytest.TempPathFactory) -> list[MapImage]:
 
 class ScriptedSolve:
     """Stands in for localize_against: records each call's keyframes and answers the
-    next scripted outcome (a Pose: solved there with 50 inliers; None: failed)."""
+    next scripted outcome (a Pose: solved there with 50 inliers; (Pose, n): with n
+    inliers; None: failed)."""
 
     def __init__(self, outcomes: list[Pose | None]) -> None:
         self.outcomes = list(outcomes)
@@ -80,15 +81,19 @@ class ScriptedSolve:
         self.given_features.append(given)
         # The features "extracted" by this call: a fresh object unless given.
         features = given if given is not None else object()
-        pose = self.outcomes.pop(0)
+        pose, inliers = self.outcomes.pop(0), 50
+        if isinstance(pose, tuple):
+            pose, inliers = pose
         if pose is None:
             return StructureAnswer(None, 3, 9, False, FAILED_SECONDS, query_features=features)
-        return StructureAnswer(pose, 50, 80, True, SOLVED_SECONDS, query_features=features)
+        return StructureAnswer(pose, inliers, 80, True, SOLVED_SECONDS, query_features=features)
 
 
-def tracking(small_map, monkeypatch, outcomes, keyframes="track", rematch="none") -> tuple:
+def tracking(
+    small_map, monkeypatch, outcomes, keyframes="track", rematch="none", **options
+) -> tuple:
     refiner = FeaturesRefiner(
-        keyframes=keyframes, count=2, max_features=256, quiet=True, rematch=rematch
+        keyframes=keyframes, count=2, max_features=256, quiet=True, rematch=rematch, **options
     )
     refiner.fit(small_map, np.asarray(DESCRIPTORS))
     solve = ScriptedSolve(outcomes)
@@ -204,6 +209,34 @@ def test_rematch_keeps_the_first_answer_when_the_second_fails_and_skips_a_fallba
     fallen = refiner.refine(query("b"))  # a first solve that fails is not matched again
     assert fallen.fell_back and fallen.pose is NETWORK_POSE
     assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED, BY_DESCRIPTOR]
+
+
+def test_rematch_more_inliers_answers_the_solve_with_more_evidence(small_map, monkeypatch):
+    # The second solve answers where it has at least the first's inliers, else the first.
+    outcomes = [(SOLVED, 40), (RETRIED, 39), (SOLVED, 40), (RETRIED, 40), (SOLVED, 40), None]
+    refiner, solve = tracking(
+        small_map,
+        monkeypatch,
+        outcomes,
+        keyframes="descriptor",
+        rematch="near",
+        rematch_answer="more_inliers",
+    )
+    fewer, tie, failed = (refiner.refine(query(name)) for name in "abc")
+    assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED] * 3
+    assert fewer.pose is SOLVED and fewer.confidence == 40.0
+    assert tie.pose is RETRIED and tie.confidence == 40.0
+    assert failed.pose is SOLVED and not failed.fell_back
+    for part in SOLVED_SECONDS:  # both solves counted whichever answers
+        assert fewer.seconds[part] == 2 * SOLVED_SECONDS[part]
+    loaded = FeaturesRefiner()
+    loaded.load_state(refiner.state())
+    assert loaded.rematch_answer == "more_inliers"
+    older = {k: v for k, v in refiner.state().items() if k != "rematch_answer"}
+    loaded.load_state(older)  # a file from before the option answers second
+    assert loaded.rematch_answer == "second"
+    with pytest.raises(ConfigError, match="refine.rematch_answer must be one of second, more"):
+        FeaturesRefiner(rematch_answer="best")
 
 
 def test_rematch_does_not_solve_the_same_keyframes_again(small_map, monkeypatch):
