@@ -21,26 +21,44 @@ import json
 import sys
 from pathlib import Path
 
+import yaml
 from common import write_json  # benchmarks/, the script's own folder
 
 from relocfw.model.checkpoints import write_text_atomic
 from relocfw.report.comparison import as_markdown
 from relocfw.report.seed_comparison import paired_cell
 
-# The paper's division of relocalizers; a row not named here is "other".
-FAMILY = {
-    "Retrieval (keyframes)": "keyframe",
-    "Relative pose (keyframes)": "keyframe",
-    "Features + depth": "feature",
-    "Features, RGB only": "feature",
-    "PoseNet": "learning",
-    "Ours (GA + k-means)": "learning",
-    "Bayesian PoseNet": "learning",
-    "Hourglass": "learning",
-    "Sequence, causal LSTM (20 frames)": "learning",
-    "Scene coordinates + depth": "learning",
-    "Scene coordinates, RGB only": "learning",
-}
+# The methods file whose rows the table reads; each row's family follows from its
+# overrides (family_of), so the row names live in that file only.
+METHODS_FILE = Path(__file__).resolve().parents[1] / "conf" / "methods" / "families.yaml"
+# The paper's division of relocalizers, by the refiner a row runs: keyframe-based
+# (retrieve keyframes, transfer or relate their poses), feature-based (local features
+# against a 3-D map); every other row regresses its pose or scene coordinates with a
+# learned network.
+KEYFRAME_REFINERS = ("retrieval", "relative")
+FEATURE_REFINERS = ("features", "features_rgb", "features_colmap")
+
+
+def family_of(overrides: list[str]) -> str:
+    """keyframe, feature or learning: the family of a methods-file row's overrides."""
+    refiner = next((o.split("=", 1)[1] for o in overrides if o.startswith("refine=")), None)
+    if refiner in KEYFRAME_REFINERS:
+        return "keyframe"
+    if refiner in FEATURE_REFINERS:
+        return "feature"
+    return "learning"
+
+
+def families(methods_file: Path = METHODS_FILE) -> dict[str, str]:
+    """Row name -> family, for every row of the methods file (a row not in it is
+    "other" in the table)."""
+    rows = yaml.safe_load(methods_file.read_text())
+    if not isinstance(rows, dict):
+        sys.exit(f"{methods_file}: a mapping of row name to overrides expected")
+    return {str(name): family_of([str(o) for o in overrides]) for name, overrides in rows.items()}
+
+
+FAMILY = families()
 ORDER = ("keyframe", "feature", "learning", "other")
 HEADER = [
     "family",
