@@ -38,7 +38,7 @@ features reused) against the `count` keyframes nearest the solved pose, looking 
 way (`near`), or against those together with the first solve's keyframes (`union`:
 both what looks alike and what stands near), and the second solve answers where it
 succeeds too; otherwise the first stands. With `rematch_answer=more_inliers` the
-second answers only where it has at least as many inliers (distinct map points) as
+second answers only where it has at least as many inliers (distinct query keypoints) as
 the first: a second keyframe set that sees less of the query is then not trusted
 over the first. Its seconds add both solves per part, the second's also in "rematch".
 

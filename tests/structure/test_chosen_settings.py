@@ -14,8 +14,8 @@ CHOSEN = {
         "max_error_px": 8.0,
         "min_inliers": 12,
         "image_scale": 0.5,
-        "rematch": "none",
-        "rematch_answer": "second",
+        "rematch": "near",
+        "rematch_answer": "more_inliers",
         "triangulation.epipolar_px": 4.0,
         "triangulation.max_reprojection_px": 4.0,
     },
@@ -31,6 +31,7 @@ CHOSEN = {
         "triangulation.max_reprojection_px": 6.0,
         "triangulation.method": "tracks",
     },
+    "features_colmap": {"structure": "colmap", "image_scale": 1.0, "rematch": "none"},
 }
 
 

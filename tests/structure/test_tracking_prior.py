@@ -239,6 +239,20 @@ def test_rematch_more_inliers_answers_the_solve_with_more_evidence(small_map, mo
         FeaturesRefiner(rematch_answer="best")
 
 
+def test_rematch_more_inliers_is_what_the_track_follows(small_map, monkeypatch):
+    # Frame 1's second solve has fewer inliers: the first answer (SOLVED) stands and is
+    # the next frame's prior, so frame 2 is matched near SOLVED, not near RETRIED.
+    outcomes = [(SOLVED, 40), (RETRIED, 39), (SOLVED, 40)]
+    refiner, solve = tracking(
+        small_map, monkeypatch, outcomes, rematch="near", rematch_answer="more_inliers"
+    )
+    first = refiner.refine(query("seq-01/frame-000000"))
+    second = refiner.refine(query("seq-01/frame-000001"))
+    assert first.pose is SOLVED and second.pose is SOLVED
+    # Frame 2's own rematch would choose NEAR_SOLVED again: not solved twice.
+    assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED, NEAR_SOLVED]
+
+
 def test_rematch_does_not_solve_the_same_keyframes_again(small_map, monkeypatch):
     # keyframes=pose at x = 0 gives images 2, 1; a first answer there chooses them again.
     refiner, solve = tracking(
