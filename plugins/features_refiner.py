@@ -111,7 +111,7 @@ from relocfw.structure.compact_state import compact_of_state, compact_state, hol
 from relocfw.structure.faiss_keyframes import FaissKeyframeSearch, imported_faiss
 from relocfw.structure.features import LocalFeatures, checked_image_scale
 from relocfw.structure.map_state import map_of_state, map_state
-from relocfw.structure.match_index import MatchIndex
+from relocfw.structure.match_index import KnownMatches, MatchIndex
 from relocfw.structure.refiner_inputs import (
     builder_parameters,
     checked_triangulation,
@@ -570,19 +570,22 @@ class FeaturesRefiner(PoseRefiner):
             # No map image is near a NaN pose; the network's answer stands, flagged.
             return Refined(query.network_pose, 0.0, True, {"retrieval": 0.0})
         prior = self.prior_of(query)
-        refined, features, keyframes = self.attempt(query, camera, prior)
+        # The query's matches per keyframe, shared by its solves: a keyframe in both a
+        # first and a second keyframe set is matched once.
+        known = KnownMatches()
+        refined, features, keyframes = self.attempt(query, camera, prior, known=known)
         if self.keyframes != "track":
-            return self.rematched(query, camera, refined, features, keyframes)
+            return self.rematched(query, camera, refined, features, keyframes, known)
         if refined.fell_back and prior is not None:
             # The track is lost on this frame: the same query again, by retrieval.
             started = time.perf_counter()
-            retry, _, keyframes = self.attempt(query, camera, None, features)
+            retry, _, keyframes = self.attempt(query, camera, None, features, known=known)
             seconds = dict(refined.seconds)
             for part, spent in retry.seconds.items():
                 seconds[part] = seconds.get(part, 0.0) + spent
             seconds["tracking_retry"] = time.perf_counter() - started
             refined = Refined(retry.pose, retry.confidence, retry.fell_back, seconds)
-        refined = self.rematched(query, camera, refined, features, keyframes)
+        refined = self.rematched(query, camera, refined, features, keyframes, known)
         self.tracked.record(query.name, refined.pose, refined.fell_back)
         return refined
 
@@ -593,6 +596,7 @@ class FeaturesRefiner(PoseRefiner):
         first: Refined,
         features: LocalFeatures | None,
         first_keyframes: list[int],
+        known: KnownMatches | None = None,
     ) -> Refined:
         """With refine.rematch, the query solved again against the keyframes nearest
         its first answer (with `first_keyframes` for union; the query's features
@@ -613,7 +617,7 @@ class FeaturesRefiner(PoseRefiner):
         if set(keyframes) == set(first_keyframes):
             seconds["rematch"] = time.perf_counter() - started
             return Refined(first.pose, first.confidence, False, seconds)
-        second, _, _ = self.attempt(query, camera, None, features, keyframes)
+        second, _, _ = self.attempt(query, camera, None, features, keyframes, known)
         for part, spent in second.seconds.items():
             seconds[part] = seconds.get(part, 0.0) + spent
         seconds["rematch"] = time.perf_counter() - started
@@ -634,11 +638,14 @@ class FeaturesRefiner(PoseRefiner):
         prior: Pose | None,
         features: LocalFeatures | None = None,
         keyframes: list[int] | None = None,
+        known: KnownMatches | None = None,
     ) -> tuple[Refined, LocalFeatures | None, list[int]]:
         """One solve against the keyframes near `prior` (None: by descriptor; or the
         map images `keyframes`, where given), the query's local features it used
         (`features`: extracted already, by an earlier attempt of the same query) and
-        the keyframes (map image indices)."""
+        the keyframes (map image indices). `known`: the query's matches per keyframe
+        from its earlier solves (with the map in memory; the compact store numbers a
+        query's keyframes afresh for each solve, so there it is not used)."""
         started = time.perf_counter()
         if keyframes is None:
             keyframes = self.keyframes_near(query, prior)
@@ -650,7 +657,7 @@ class FeaturesRefiner(PoseRefiner):
             # their keypoints have a point, so matching them all is match_points_only.
             keyframes = list(dict.fromkeys(keyframes))  # repeats dropped, as below
             structure = self.compact.keyframe_map(keyframes)
-            keyframes, match_index = list(range(len(keyframes))), None
+            keyframes, match_index, known = list(range(len(keyframes))), None, None
         answer = localize_against(
             structure,
             query.image,
@@ -664,6 +671,7 @@ class FeaturesRefiner(PoseRefiner):
             image_scale=self.image_scale,
             match_index=match_index,
             min_iterations=self.ransac_min_iterations,
+            known_matches=known,
         )
         seconds = {"retrieval": retrieval, **answer.seconds}
         if not answer.success:

@@ -21,7 +21,7 @@ keypoint and matches exactly as `correspondences_of` on the map does.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -87,7 +87,11 @@ class MatchIndex:
         return np.concatenate(spans) if spans else np.zeros(0, dtype=np.int64)
 
     def correspondences(
-        self, query: LocalFeatures, keyframes: Sequence[int], ratio: float
+        self,
+        query: LocalFeatures,
+        keyframes: Sequence[int],
+        ratio: float,
+        known: KnownMatches | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """The query's 2-D/3-D correspondences through its matches with `keyframes`
         (distinct, in range, best first; query_solver.checked_keyframes).
@@ -96,35 +100,53 @@ class MatchIndex:
         mutual nearest neighbours with the ratio test (matching.matches_of_distances);
         a query keypoint matched in several keyframes keeps its match of the smallest
         distance, a tie going to the earlier keyframe (matching.one_match_per_query).
+        A keyframe's matches depend on the query and that keyframe alone, so with
+        `known` (the same query's matches from an earlier call) only the keyframes it
+        lacks are matched, and they are added to it.
 
         Returns:
             points_2d [K, 2] float64 query pixels and points_3d [K, 3] float64 world
             points, in query keypoint order; rows whose point is NaN (possible only
             without `points_only`) are dropped.
+
+        Raises:
+            DataError: when `known` holds another query's or another ratio's matches.
         """
         keyframes = checked_keyframes(keyframes, len(self))
-        rows = self.rows_of(keyframes)
-        if len(query) == 0 or len(rows) == 0:
+        if known is None:
+            known = KnownMatches()
+        known.check(query, ratio)
+        if len(query) == 0:
             return np.zeros((0, 2)), np.zeros((0, 3))
+        new = [k for k in keyframes if k not in known.by_keyframe]
+        rows = self.rows_of(new)
         with torch.inference_mode():
-            candidates = torch.from_numpy(self.codes[rows]).to(torch.float32)
-            candidates /= DESCRIPTOR_SCALE
-            query_t = torch.from_numpy(np.array(query.descriptors, dtype=np.float32))
-            query_norms = (query_t * query_t).sum(dim=1, keepdim=True)
-            candidate_norms = torch.from_numpy(np.array(self.norms[rows]))[None, :]
-            distances = torch.addmm(
-                query_norms + candidate_norms, query_t, candidates.T, alpha=-2.0
-            ).clamp_(min=0.0)
-            query_rows, stacked_rows = [], []
+            distances = None
+            if len(rows):
+                candidates = torch.from_numpy(self.codes[rows]).to(torch.float32)
+                candidates /= DESCRIPTOR_SCALE
+                query_t = torch.from_numpy(np.array(query.descriptors, dtype=np.float32))
+                query_norms = (query_t * query_t).sum(dim=1, keepdim=True)
+                candidate_norms = torch.from_numpy(np.array(self.norms[rows]))[None, :]
+                distances = torch.addmm(
+                    query_norms + candidate_norms, query_t, candidates.T, alpha=-2.0
+                ).clamp_(min=0.0)
             start = 0
-            for keyframe in keyframes:
+            for keyframe in new:
                 end = start + int(self.offsets[keyframe + 1] - self.offsets[keyframe])
-                pairs = matches_of_distances(distances[:, start:end], ratio)
-                query_rows.append(pairs[:, 0])
-                stacked_rows.append(pairs[:, 1] + start)
+                pairs = (
+                    matches_of_distances(distances[:, start:end], ratio)
+                    if distances is not None
+                    else np.zeros((0, 2), dtype=np.int64)
+                )
+                # (query keypoint, stacked row of the index) per match.
+                known.by_keyframe[keyframe] = np.stack([pairs[:, 0], rows[pairs[:, 1] + start]], 1)
                 start = end
-        indices = np.concatenate(query_rows)
-        chosen_rows = rows[np.concatenate(stacked_rows)]
+        matched = [known.by_keyframe[k] for k in keyframes]
+        if not matched or not sum(len(m) for m in matched):
+            return np.zeros((0, 2)), np.zeros((0, 3))
+        indices = np.concatenate([m[:, 0] for m in matched])
+        chosen_rows = np.concatenate([m[:, 1] for m in matched])
         world = self.points[chosen_rows]
         has_point = np.isfinite(world).all(axis=1)
         indices, chosen_rows, world = indices[has_point], chosen_rows[has_point], world[has_point]
@@ -138,3 +160,30 @@ class MatchIndex:
             query.keypoints[indices[kept]].astype(np.float64),
             world[kept].astype(np.float64),
         )
+
+
+@dataclass
+class KnownMatches:
+    """One query's matches per keyframe (MatchIndex.correspondences), kept across the
+    solves of that query (a second match near its first answer, a retry after a lost
+    track), so a keyframe in both keyframe sets is matched once.
+
+    Attributes:
+        by_keyframe: keyframe -> [P, 2] int64 (query keypoint, MatchIndex row) matches.
+        query: the query's features they belong to (bound on first use).
+        ratio: the ratio test they passed (bound on first use).
+    """
+
+    by_keyframe: dict[int, np.ndarray] = field(default_factory=dict)
+    query: LocalFeatures | None = None
+    ratio: float | None = None
+
+    def check(self, query: LocalFeatures, ratio: float) -> None:
+        """Bind to `query` and `ratio` on first use; DataError for another later."""
+        if self.query is None:
+            self.query, self.ratio = query, ratio
+        elif self.query is not query or self.ratio != ratio:
+            raise DataError(
+                "known matches belong to another query's features or another ratio; "
+                "keep one KnownMatches per query"
+            )

@@ -26,7 +26,7 @@ from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.values import Pose
 from relocfw.structure.absolute_pose import POSELIB_MIN_ITERATIONS, solve_absolute_pose
 from relocfw.structure.features import LocalFeatures, checked_image_scale, extract_rootsift
-from relocfw.structure.match_index import MatchIndex
+from relocfw.structure.match_index import KnownMatches, MatchIndex
 from relocfw.structure.matching import (
     checked_ratio,
     match_against_views,
@@ -126,6 +126,7 @@ def localize_against(
     image_scale: float = 1.0,
     match_index: MatchIndex | None = None,
     min_iterations: int = POSELIB_MIN_ITERATIONS,
+    known_matches: KnownMatches | None = None,
 ) -> StructureAnswer:
     """The pose of a query image from its matches with a few map images.
 
@@ -150,6 +151,9 @@ def localize_against(
             and only the keypoints it holds (with a 3-D point, by default) are
             candidates. None: the keyframes' descriptors, every keypoint.
         min_iterations: the solve's fewest RANSAC rounds (absolute_pose).
+        known_matches: with `match_index`, this query's matches per keyframe from
+            an earlier solve of the same query features and ratio (filled here): a
+            keyframe found there is not matched again. Not read without a match_index.
 
     Returns:
         StructureAnswer. Zero correspondences (a blank or unrelated image, keyframes
@@ -199,7 +203,9 @@ def localize_against(
     if match_index is None:
         points_2d, points_3d = correspondences_of(structure, query_features, chosen, ratio)
     else:
-        points_2d, points_3d = match_index.correspondences(query_features, chosen, ratio)
+        points_2d, points_3d = match_index.correspondences(
+            query_features, chosen, ratio, known_matches
+        )
     matching_done = time.perf_counter()
     solved = solve_absolute_pose(points_2d, points_3d, camera, bound, min_inliers, min_iterations)
     solve_done = time.perf_counter()

@@ -7,8 +7,9 @@ import pytest
 
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import orientation_error_deg
+from relocfw.structure import match_index as match_index_module
 from relocfw.structure.features import extract_rootsift, to_full_image
-from relocfw.structure.match_index import MatchIndex
+from relocfw.structure.match_index import KnownMatches, MatchIndex
 from relocfw.structure.query_solver import correspondences_of, localize_against
 from relocfw.structure.structure_map import build_from_depth
 from tests.structure.test_features import textured_image
@@ -26,6 +27,37 @@ def test_every_keypoint_index_gives_the_bare_maps_correspondences(
         assert len(bare[0]) > 20
         np.testing.assert_array_equal(stacked[0], bare[0])
         np.testing.assert_array_equal(stacked[1], bare[1])
+
+
+def test_known_matches_are_not_matched_again_and_answer_the_same(
+    synthetic_scene, triangulated_structure, monkeypatch
+):
+    # A second keyframe set that shares keyframes with the first matches only the
+    # others, and gives what matching it from scratch gives.
+    query = extract_rootsift(synthetic_scene.query_image, 1024)
+    index = MatchIndex.of(triangulated_structure, points_only=False)
+    fresh = [index.correspondences(query, k, 0.8) for k in ([0, 1], [2, 1, 0], [1])]
+    matched = []
+    real = match_index_module.matches_of_distances
+
+    def counted(distances, ratio):
+        matched.append(distances.shape[1])
+        return real(distances, ratio)
+
+    monkeypatch.setattr(match_index_module, "matches_of_distances", counted)
+    known = KnownMatches()
+    again = [index.correspondences(query, k, 0.8, known) for k in ([0, 1], [2, 1, 0], [1])]
+    assert len(matched) == 3  # images 0 and 1, then 2 only, then none
+    assert sorted(known.by_keyframe) == [0, 1, 2]
+    for (points_2d, points_3d), (expected_2d, expected_3d) in zip(again, fresh, strict=True):
+        assert len(points_2d) > 20
+        np.testing.assert_array_equal(points_2d, expected_2d)
+        np.testing.assert_array_equal(points_3d, expected_3d)
+    other = extract_rootsift(synthetic_scene.views[0].image, 256)
+    with pytest.raises(DataError, match="another query's features or another ratio"):
+        index.correspondences(other, [0], 0.8, known)
+    with pytest.raises(DataError, match="another query's features or another ratio"):
+        index.correspondences(query, [0], 0.7, known)
 
 
 def test_a_points_only_index_holds_only_keypoints_with_a_point(triangulated_structure):

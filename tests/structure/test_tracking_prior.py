@@ -74,10 +74,12 @@ class ScriptedSolve:
         self.outcomes = list(outcomes)
         self.keyframes: list[list[int]] = []
         self.given_features: list[object] = []  # each call's query_features
+        self.known: list[object] = []  # each call's known_matches
 
     def __call__(self, structure, image, camera, keyframes, **options) -> StructureAnswer:
         self.keyframes.append([int(k) for k in keyframes])
         given = options.get("query_features")
+        self.known.append(options.get("known_matches"))
         self.given_features.append(given)
         # The features "extracted" by this call: a fresh object unless given.
         features = given if given is not None else object()
@@ -182,13 +184,21 @@ def test_a_failed_tracking_attempt_is_retried_by_retrieval_and_its_pose_answered
 
 def test_rematch_solves_again_near_the_first_answer_and_answers_the_second(small_map, monkeypatch):
     refiner, solve = tracking(
-        small_map, monkeypatch, [SOLVED, RETRIED], keyframes="descriptor", rematch="near"
+        small_map,
+        monkeypatch,
+        [SOLVED, RETRIED, SOLVED, RETRIED],
+        keyframes="descriptor",
+        rematch="near",
     )
     answer = refiner.refine(query("seq-01/frame-000000"))
     assert solve.keyframes == [BY_DESCRIPTOR, NEAR_SOLVED]
     assert not answer.fell_back and answer.pose is RETRIED
     # The second solve reuses the first's features; both solves' times are counted.
     assert solve.given_features[0] is None and solve.given_features[1] is not None
+    # ... and the first's matches per keyframe (one KnownMatches per query).
+    assert solve.known[0] is not None and solve.known[1] is solve.known[0]
+    refiner.refine(query("seq-01/frame-000001"))  # another query: its own
+    assert solve.known[2] is not solve.known[0] and solve.known[3] is solve.known[2]
     for part in SOLVED_SECONDS:
         assert answer.seconds[part] == 2 * SOLVED_SECONDS[part]
     assert 0.0 < answer.seconds["rematch"] < 1.0
