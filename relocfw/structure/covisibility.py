@@ -43,11 +43,21 @@ MIN_MEETINGS = 3
 FALLBACK_DEPTH_SPACINGS = 20.0
 
 
+def optical_axes(poses: Sequence[Pose]) -> np.ndarray:
+    """[M, 3] unit viewing directions (camera z axes) in the world of camera-to-world
+    poses."""
+    if not poses:
+        return np.zeros((0, 3))
+    # One scipy call for all poses (a call per pose cost 30 us each: 3 s at 10^5 images).
+    rotations = quaternion_to_matrix(np.stack([p.quaternion for p in poses]))
+    return rotations.reshape(len(poses), 3, 3)[:, :, 2]
+
+
 def axes_and_centres(poses: Sequence[Pose]) -> tuple[np.ndarray, np.ndarray]:
     """([M, 3] unit optical axes, [M, 3] camera centres) of camera-to-world poses."""
     if not poses:
         return np.zeros((0, 3)), np.zeros((0, 3))
-    axes = np.stack([quaternion_to_matrix(p.quaternion)[:, 2] for p in poses])
+    axes = optical_axes(poses)
     centres = np.stack([np.asarray(p.position, dtype=np.float64) for p in poses])
     return axes, centres
 
