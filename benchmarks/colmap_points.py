@@ -11,10 +11,14 @@ is PINHOLE f = 525, principal point (320, 240) (7-Scenes' colour camera; 585 is 
 depth sensor's).
 
 relocfw then reads the model as dataset=colmap (relocfw.data.colmap.ColmapDataset,
-dataset.points=true) and the FeaturesRefiner plugin answers each query twice:
-`refine=features` (structure=depth, which on a COLMAP model without depth takes the
-model's points: structure "colmap") and `refine=features_rgb` (triangulated from
-the map images and poses). Keyframes come from a ground-truth-free stand-in for the
+dataset.points=true) and the FeaturesRefiner plugin answers each query once per row,
+each row composed from relocfw's own config as `relocfw refine=NAME OVERRIDES` would
+compose it (so the rows measure the shipped defaults): `refine=features`
+(structure=depth, which on a COLMAP model without depth takes the model's points:
+structure "colmap"), the same with one solve (`refine.rematch=none`),
+`refine=features_colmap` (the model's points, SIFT at full size, one solve) and
+`refine=features_rgb` (triangulated from the map images and poses), with and
+without matching again. Keyframes come from a ground-truth-free stand-in for the
 network's descriptor: a 16 x 12 grey thumbnail, mean-subtracted, unit norm. A
 query that falls back answers the mean map pose; its error counts as it is.
 
@@ -32,6 +36,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 from common import DEFAULT_CACHE, write_json  # benchmarks/, the script's own folder
+from hydra import compose, initialize_config_module
+from hydra.utils import instantiate
 
 from relocfw.core.geometry import orientation_error_deg, pose_from_matrix
 from relocfw.core.imaging import read_rgb
@@ -42,11 +48,22 @@ from relocfw.data.colmap_format import ColmapCamera
 from relocfw.data.colmap_triangulation import pycolmap_module, triangulate_posed_images
 from relocfw.data.frames import mean_pose
 from relocfw.plugins.features_refiner import FeaturesRefiner
+from relocfw.report.statistics import paired_test
 
 SCENE = Path("/work/shared/data/7scenes-redkitchen/redkitchen")
 MAP_SEQUENCES = (1, 3, 5, 7)
 COLOUR_CAMERA = ColmapCamera(1, "PINHOLE", 640, 480, (525.0, 525.0, 320.0, 240.0))
 THUMBNAIL = (16, 12)
+# Each row: its label and the overrides that compose it (refine= first).
+ROWS = (
+    ("features", ("refine=features",)),
+    ("features, one solve", ("refine=features", "refine.rematch=none")),
+    ("features_colmap", ("refine=features_colmap",)),
+    ("features_rgb", ("refine=features_rgb",)),
+    ("features_rgb, one solve", ("refine=features_rgb", "refine.rematch=none")),
+)
+# Paired query by query: the default (matching again) against one solve.
+PAIRS = (("features", "features, one solve"), ("features_rgb", "features_rgb, one solve"))
 
 
 def thumbnail(image: np.ndarray) -> np.ndarray:
@@ -142,7 +159,20 @@ def run(refiner: FeaturesRefiner, dataset: ColmapDataset) -> dict:
         "within_5cm_5deg": float(within.mean()),
         "map_build_s": build_seconds,
         "median_query_s": float(np.median(seconds)),
+        "position_errors_m": [round(value, 5) for value in positions],
+        "orientation_errors_deg": [round(value, 4) for value in orientations],
     }
+
+
+def composed_refiner(overrides: tuple[str, ...], cache_dir: str | None) -> FeaturesRefiner:
+    """The refiner `relocfw OVERRIDES` builds, quiet, with the structure cache given."""
+    common = ["quiet=true", f"cache_dir={cache_dir}" if cache_dir else "refine.cache_dir=null"]
+    with initialize_config_module(config_module="relocfw.conf", version_base="1.3"):
+        cfg = compose("config", overrides=[*overrides, *common])
+    refiner = instantiate(cfg.refine)
+    if not isinstance(refiner, FeaturesRefiner):
+        raise SystemExit(f"{' '.join(overrides)} does not build a FeaturesRefiner")
+    return refiner
 
 
 def model_summary(folder: Path) -> dict:
@@ -178,10 +208,19 @@ def main() -> None:
         str(root), test=queries, model="colmap/sparse", images="images", metric=True
     )
     rows = {}
-    for label, structure in (("features", "depth"), ("features_rgb", "triangulated")):
-        refiner = FeaturesRefiner(structure=structure, cache_dir=args.cache_dir, quiet=True)
-        rows[label] = run(refiner, dataset)
-        print(label, rows[label])
+    for label, overrides in ROWS:
+        rows[label] = {"overrides": list(overrides)}
+        rows[label].update(run(composed_refiner(overrides, args.cache_dir), dataset))
+        print(label, rows[label], flush=True)
+    paired = {}
+    for new, old in PAIRS:
+        paired[f"{new} minus {old}"] = {
+            kind: paired_test(
+                np.array([rows[new][f"{kind}_errors_{unit}"]]),
+                np.array([rows[old][f"{kind}_errors_{unit}"]]),
+            )
+            for kind, unit in (("position", "m"), ("orientation", "deg"))
+        }
     report = {
         "benchmark": "colmap_points",
         "command": "benchmarks/colmap_points.py "
@@ -194,6 +233,7 @@ def main() -> None:
         "model": model_summary(root / "colmap" / "sparse"),
         "retrieval": f"{THUMBNAIL[0]}x{THUMBNAIL[1]} grey thumbnails, 10 keyframes",
         "rows": rows,
+        "paired": paired,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},
     }
     write_json(report, args.out)

@@ -174,8 +174,10 @@ def colmap_rows(path: Path) -> str:
         f"{found['query_images']} queries of its own (unpaired with the tables above)."
     ]
     for name, row in found["rows"].items():
+        # Rows name the overrides that composed them; older files only the refine=.
+        composed = " ".join(row.get("overrides", [f"refine={name}"]))
         lines.append(
-            f"- `refine={name}` ({row['structure_source']} points): "
+            f"- `{composed}` ({row['structure_source']} points): "
             f"{row['median_position_m']:.3f} m / {row['median_orientation_deg']:.2f} deg, "
             f"{100 * row['within_5cm_5deg']:.0f}% within 5 cm / 5 deg, "
             f"{row['fallbacks']} of {row['queries']} fell back, map built in "

@@ -20,7 +20,9 @@ length, pixels: 7-Scenes gives only the depth sensor's, 585; 525 is the communit
 nominal colour value), max_features, image_scale, keyframes, max_error_px,
 min_inliers, and any triangulation setting (partners, min_partner_angle_deg,
 max_partner_angle_deg, epipolar_px, max_reprojection_px, min_views, min_angle_deg,
-ratio).
+ratio), and within_recording=1: partners only from the map image's own recording (the
+folder part of its name), an experiment the library has no option for (see
+`partners_within_recording`).
 
     OMP_NUM_THREADS=2 .venv/bin/python -m benchmarks.rgb_settings_oracle \
         --variant default: --variant f532:focal=532 --out benchmarks/results/x.json
@@ -29,6 +31,7 @@ ratio).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import platform
 import time
@@ -36,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+import relocfw.structure.tracks as tracks_module
 from benchmarks.common import write_json
 from benchmarks.rgb_map_quality import LazyViews, query_errors
 from relocfw.core.camera import PinholeCamera
@@ -54,6 +58,7 @@ DEFAULTS: dict[str, float | int | None] = {
     "keyframes": 20,
     "max_error_px": 16.0,
     "min_inliers": 8,
+    "within_recording": 0,
 }
 TRIANGULATION_DEFAULTS: dict[str, float | int] = {"epipolar_px": 6.0, "max_reprojection_px": 6.0}
 TRIANGULATION_KEYS = (
@@ -66,7 +71,14 @@ TRIANGULATION_KEYS = (
     "min_angle_deg",
     "ratio",
 )
-INTEGER_KEYS = ("max_features", "keyframes", "min_inliers", "partners", "min_views")
+INTEGER_KEYS = (
+    "max_features",
+    "keyframes",
+    "min_inliers",
+    "partners",
+    "min_views",
+    "within_recording",
+)
 WITHIN_M, WITHIN_DEG = 0.05, 5.0
 
 
@@ -105,6 +117,37 @@ def with_focal(frames: list[Frame], focal: float | None) -> list[Frame]:
     return out
 
 
+@contextlib.contextmanager
+def partners_within_recording(names: list[str], enabled: bool):
+    """While open (and `enabled`), the map build takes each image's partners only
+    among images of its own recording, in the library's own order of preference.
+
+    The hypothesis it tests: 7-Scenes' recordings disagree with each other by a few
+    cm (benchmarks/block_consistency.py), so a track spanning two recordings might
+    hold a point right for neither. The library chooses partners by geometry alone
+    and has no option for this; the benchmark swaps the partner choice of
+    relocfw.structure.tracks for the duration of one build and restores it.
+    """
+    if not enabled:
+        yield
+        return
+    recordings = [name.rsplit("/", 1)[0] for name in names]
+    library_choice = tracks_module.covisible_partners
+
+    def within(poses, cameras, depths, partners, min_angle_deg, max_angle_deg):
+        every = library_choice(poses, cameras, depths, len(poses), min_angle_deg, max_angle_deg)
+        return [
+            [j for j in row if recordings[j] == recordings[i]][:partners]
+            for i, row in enumerate(every)
+        ]
+
+    tracks_module.covisible_partners = within
+    try:
+        yield
+    finally:
+        tracks_module.covisible_partners = library_choice
+
+
 def query_rows(structure, queries: list[Frame], settings: dict) -> dict:
     """Median errors, share within 5 cm / 5 deg and failures over the queries."""
     positions_a, angles_a = query_errors(
@@ -131,13 +174,15 @@ def measured(variant: Variant, map_frames: list[Frame], query_frames: list[Frame
     settings = variant.settings
     views = LazyViews(with_focal(map_frames, settings["focal"]))
     start = time.perf_counter()
-    structure = build_by_triangulation(
-        views,
-        settings["max_features"],
-        quiet=True,
-        image_scale=settings["image_scale"],
-        **variant.triangulation,
-    )
+    names = [str(frame.name) for frame in map_frames]
+    with partners_within_recording(names, bool(settings["within_recording"])):
+        structure = build_by_triangulation(
+            views,
+            settings["max_features"],
+            quiet=True,
+            image_scale=settings["image_scale"],
+            **variant.triangulation,
+        )
     row = {
         "variant": variant.name,
         "colour_focal": views[0].camera.fx,

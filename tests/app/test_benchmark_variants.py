@@ -1,0 +1,61 @@
+"""Benchmark helpers that decide what a benchmark row measures (no data needed)."""
+
+import importlib
+from pathlib import Path
+
+import pytest
+
+import relocfw.structure.tracks as tracks_module
+
+BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
+
+
+def test_partners_within_recording_filters_and_restores(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
+    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
+    asked = []
+
+    def library_choice(poses, cameras, depths, partners, low, high):
+        asked.append(partners)
+        # Best first, across two recordings.
+        return [[1, 2, 3], [0, 2, 3], [3, 0, 1], [2, 1, 0]][: len(poses)]
+
+    monkeypatch.setattr(tracks_module, "covisible_partners", library_choice)
+    names = ["seq-01/frame-0", "seq-01/frame-1", "seq-02/frame-0", "seq-02/frame-1"]
+    with oracle.partners_within_recording(names, enabled=True):
+        chosen = tracks_module.covisible_partners([None] * 4, None, None, 1, 1.5, 20.0)
+    # Every candidate asked for, then the best one of the image's own recording kept.
+    assert asked == [4]
+    assert chosen == [[1], [0], [3], [2]]
+    assert tracks_module.covisible_partners is library_choice
+    with oracle.partners_within_recording(names, enabled=False):
+        assert tracks_module.covisible_partners is library_choice
+
+
+def test_partners_within_recording_restores_after_an_error(monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
+    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
+    before = tracks_module.covisible_partners
+    with pytest.raises(RuntimeError), oracle.partners_within_recording(["a/0"], enabled=True):
+        raise RuntimeError("build failed")
+    assert tracks_module.covisible_partners is before
+
+
+def test_colmap_points_rows_are_the_shipped_configs(monkeypatch):
+    pytest.importorskip("poselib")
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    colmap_points = importlib.import_module("colmap_points")
+    built = {
+        label: colmap_points.composed_refiner(overrides, None)
+        for label, overrides in colmap_points.ROWS
+    }
+    assert (built["features"].rematch, built["features"].rematch_answer) == (
+        "near",
+        "more_inliers",
+    )
+    assert built["features, one solve"].rematch == "none"
+    assert built["features_colmap"].image_scale == 1.0
+    assert built["features_colmap"].rematch == "none"
+    assert built["features_rgb"].count == 20 and built["features_rgb"].rematch == "near"
+    assert built["features_rgb, one solve"].rematch == "none"
+    assert all(refiner.cache_dir is None for refiner in built.values())
