@@ -20,9 +20,11 @@ length, pixels: 7-Scenes gives only the depth sensor's, 585; 525 is the communit
 nominal colour value), max_features, image_scale, keyframes, max_error_px,
 min_inliers, and any triangulation setting (partners, min_partner_angle_deg,
 max_partner_angle_deg, epipolar_px, max_reprojection_px, min_views, min_angle_deg,
-ratio), and within_recording=1: partners only from the map image's own recording (the
-folder part of its name), an experiment the library has no option for (see
-`partners_within_recording`).
+ratio), and two experiments the library has no option for: within_recording=1
+(partners only from the map image's own recording, the folder part of its name; see
+`partners_within_recording`) and loss_px (the scale, pixels, of the Cauchy loss of
+PoseLib's final refinement over the inliers; 0 keeps PoseLib's own, half the inlier
+bound; see `poselib_loss_scale`).
 
     OMP_NUM_THREADS=2 .venv/bin/python -m benchmarks.rgb_settings_oracle \
         --variant default: --variant f532:focal=532 --out benchmarks/results/x.json
@@ -46,7 +48,9 @@ from relocfw.core.camera import PinholeCamera
 from relocfw.data.frames import Frame
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.structure import build_by_triangulation
+from relocfw.structure.covisibility import scene_depths
 from relocfw.structure.map_quality import depth_agreement, point_share
+from relocfw.structure.tracks import TrackSettings
 
 ROOT = Path("/work/shared/data/7scenes-redkitchen")
 # refine=features_rgb's defaults (conf/refine/features.yaml and features_rgb.yaml);
@@ -59,6 +63,7 @@ DEFAULTS: dict[str, float | int | None] = {
     "max_error_px": 16.0,
     "min_inliers": 8,
     "within_recording": 0,
+    "loss_px": 0.0,
 }
 TRIANGULATION_DEFAULTS: dict[str, float | int] = {"epipolar_px": 6.0, "max_reprojection_px": 6.0}
 TRIANGULATION_KEYS = (
@@ -148,6 +153,52 @@ def partners_within_recording(names: list[str], enabled: bool):
         tracks_module.covisible_partners = library_choice
 
 
+@contextlib.contextmanager
+def poselib_loss_scale(pixels: float):
+    """While open (and `pixels` > 0), PoseLib's absolute-pose solves refine their
+    inliers with a Cauchy loss of this scale instead of PoseLib's own (half the RANSAC
+    inlier bound: 8 px under refine=features_rgb's 16 px bound).
+
+    The hypothesis it tests: a wide inlier bound keeps queries from failing, and a
+    tighter loss in the final refinement might weigh the precise correspondences
+    more. relocfw.structure.absolute_pose imports poselib when it solves, so the
+    module's function is swapped for the duration and restored.
+    """
+    if pixels <= 0:
+        yield
+        return
+    import poselib
+
+    library_solve = poselib.estimate_absolute_pose
+
+    def with_loss(points_2d, points_3d, camera, ransac, bundle):
+        return library_solve(points_2d, points_3d, camera, ransac, {**bundle, "loss_scale": pixels})
+
+    poselib.estimate_absolute_pose = with_loss
+    try:
+        yield
+    finally:
+        poselib.estimate_absolute_pose = library_solve
+
+
+def partners_across_recordings(map_frames: list[Frame]) -> float:
+    """The share of the map's partner pairs (refine=features_rgb's partner settings,
+    the library's choice) whose two images lie in different recordings."""
+    settings = TrackSettings.of(TRIANGULATION_DEFAULTS)
+    poses = [frame.pose for frame in map_frames]
+    chosen = tracks_module.covisible_partners(
+        poses,
+        [frame.camera for frame in map_frames],
+        scene_depths(poses),
+        settings.partners,
+        settings.min_partner_angle_deg,
+        settings.max_partner_angle_deg,
+    )
+    recordings = [str(frame.name).rsplit("/", 1)[0] for frame in map_frames]
+    pairs = [(i, j) for i, row in enumerate(chosen) for j in row]
+    return sum(recordings[i] != recordings[j] for i, j in pairs) / max(len(pairs), 1)
+
+
 def query_rows(structure, queries: list[Frame], settings: dict) -> dict:
     """Median errors, share within 5 cm / 5 deg and failures over the queries."""
     positions_a, angles_a = query_errors(
@@ -192,7 +243,8 @@ def measured(variant: Variant, map_frames: list[Frame], query_frames: list[Frame
         "share_with_point": point_share(structure),
         "against_depth": dataclasses.asdict(depth_agreement(structure, views)),
     }
-    row["query"] = query_rows(structure, with_focal(query_frames, settings["focal"]), settings)
+    with poselib_loss_scale(settings["loss_px"]):
+        row["query"] = query_rows(structure, with_focal(query_frames, settings["focal"]), settings)
     return row
 
 
@@ -231,6 +283,7 @@ def main() -> None:
             "map_sequences": args.map_sequences,
             "query_sequence": args.query_sequence,
             "query_retrieval": "oracle: keyframes nearest the ground-truth pose",
+            "partner_pairs_across_recordings": partners_across_recordings(map_frames),
             "machine": platform.machine(),
             "rows": rows,
         },

@@ -59,3 +59,24 @@ def test_colmap_points_rows_are_the_shipped_configs(monkeypatch):
     assert built["features_rgb"].count == 20 and built["features_rgb"].rematch == "near"
     assert built["features_rgb, one solve"].rematch == "none"
     assert all(refiner.cache_dir is None for refiner in built.values())
+
+
+def test_poselib_loss_scale_passes_the_scale_and_restores(monkeypatch):
+    poselib = pytest.importorskip("poselib")
+    monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
+    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
+    seen = []
+
+    def library_solve(points_2d, points_3d, camera, ransac, bundle):
+        seen.append(dict(bundle))
+        return "pose", {}
+
+    monkeypatch.setattr(poselib, "estimate_absolute_pose", library_solve)
+    with oracle.poselib_loss_scale(2.0):
+        assert (
+            poselib.estimate_absolute_pose(None, None, None, {}, {"max_iterations": 5})[0] == "pose"
+        )
+    with oracle.poselib_loss_scale(0.0):
+        poselib.estimate_absolute_pose(None, None, None, {}, {})
+    assert seen == [{"max_iterations": 5, "loss_scale": 2.0}, {}]
+    assert poselib.estimate_absolute_pose is library_solve
