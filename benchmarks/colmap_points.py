@@ -22,7 +22,7 @@ without matching again. Keyframes come from a ground-truth-free stand-in for the
 network's descriptor: a 16 x 12 grey thumbnail, mean-subtracted, unit norm. A
 query that falls back answers the mean map pose; its error counts as it is.
 
-    .venv/bin/python benchmarks/colmap_points.py --map-every 6 --queries 20
+    .venv/bin/python benchmarks/colmap_points.py --map-every 6 --queries 100
 """
 
 from __future__ import annotations
@@ -87,14 +87,17 @@ def spread(names: list[str], count: int) -> list[str]:
     return [names[i] for i in sorted(set(picks.tolist()))]
 
 
-def build_model(args: argparse.Namespace, names: list[str], queries: list[str]) -> Path:
-    """The COLMAP project folder (sparse model + `images` link), built or reused."""
+def build_model(
+    args: argparse.Namespace, names: list[str], queries: list[str]
+) -> tuple[Path, float | None]:
+    """The COLMAP project folder (sparse model + `images` link), built or reused, and
+    the seconds the build took (None when reused)."""
     root = Path(args.workspace).expanduser()
     marker = root / "built.txt"
     wanted = "\n".join([*names, "--", *queries, str(args.max_features)])
     if marker.is_file() and marker.read_text() == wanted:
         print(f"reusing the COLMAP model in {root}")
-        return root
+        return root, None
     started = time.perf_counter()
     triangulate_posed_images(
         args.scene,
@@ -109,8 +112,9 @@ def build_model(args: argparse.Namespace, names: list[str], queries: list[str]) 
     (root / "images").unlink(missing_ok=True)
     (root / "images").symlink_to(Path(args.scene).resolve())
     marker.write_text(wanted)
-    print(f"COLMAP model built in {time.perf_counter() - started:.1f} s")
-    return root
+    seconds = time.perf_counter() - started
+    print(f"COLMAP model built in {seconds:.1f} s")
+    return root, seconds
 
 
 def run(refiner: FeaturesRefiner, dataset: ColmapDataset) -> dict:
@@ -166,7 +170,13 @@ def run(refiner: FeaturesRefiner, dataset: ColmapDataset) -> dict:
 
 def composed_refiner(overrides: tuple[str, ...], cache_dir: str | None) -> FeaturesRefiner:
     """The refiner `relocfw OVERRIDES` builds, quiet, with the structure cache given."""
-    common = ["quiet=true", f"cache_dir={cache_dir}" if cache_dir else "refine.cache_dir=null"]
+    # dataset=colmap with metric true, as the ColmapDataset below is read.
+    common = [
+        "dataset=colmap",
+        "dataset.metric=true",
+        "quiet=true",
+        f"cache_dir={cache_dir}" if cache_dir else "refine.cache_dir=null",
+    ]
     with initialize_config_module(config_module="relocfw.conf", version_base="1.3"):
         cfg = compose("config", overrides=[*overrides, *common])
     refiner = instantiate(cfg.refine)
@@ -189,7 +199,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--scene", type=Path, default=SCENE)
     parser.add_argument("--map-every", type=int, default=6)
-    parser.add_argument("--queries", type=int, default=20)
+    parser.add_argument("--queries", type=int, default=100)
     parser.add_argument("--query-sequence", type=int, default=2)
     parser.add_argument("--max-features", type=int, default=2048, help="COLMAP's SIFT")
     parser.add_argument("--threads", type=int, default=2)
@@ -202,15 +212,16 @@ def main() -> None:
     cv2.setNumThreads(args.threads)
     names = [n for s in MAP_SEQUENCES for n in frames_every(s, args.map_every)]
     queries = spread(frames_every(args.query_sequence, 1), args.queries)
-    root = build_model(args, names + queries, queries)
+    root, model_build_s = build_model(args, names + queries, queries)
     pycolmap_module().logging.minloglevel = 2
     dataset = ColmapDataset(
         str(root), test=queries, model="colmap/sparse", images="images", metric=True
     )
     rows = {}
     for label, overrides in ROWS:
-        rows[label] = {"overrides": list(overrides)}
-        rows[label].update(run(composed_refiner(overrides, args.cache_dir), dataset))
+        refiner = composed_refiner(overrides, args.cache_dir)
+        rows[label] = {"overrides": list(overrides), "keyframes": refiner.count}
+        rows[label].update(run(refiner, dataset))
         print(label, rows[label], flush=True)
     paired = {}
     for new, old in PAIRS:
@@ -231,7 +242,8 @@ def main() -> None:
         "query_images": len(queries),
         "camera": "PINHOLE 525 525 320 240 (COLMAP's pixels)",
         "model": model_summary(root / "colmap" / "sparse"),
-        "retrieval": f"{THUMBNAIL[0]}x{THUMBNAIL[1]} grey thumbnails, 10 keyframes",
+        "model_build_s": model_build_s,  # None: reused from an earlier run
+        "retrieval": f"{THUMBNAIL[0]}x{THUMBNAIL[1]} grey thumbnails (each row's keyframes)",
         "rows": rows,
         "paired": paired,
         "machine": {"platform": platform.platform(), "cpus": os.cpu_count()},

@@ -140,6 +140,8 @@ def partners_within_recording(names: list[str], enabled: bool):
     library_choice = tracks_module.covisible_partners
 
     def within(poses, cameras, depths, partners, min_angle_deg, max_angle_deg):
+        if len(poses) != len(recordings):
+            raise ValueError(f"{len(poses)} poses but {len(recordings)} map image names")
         every = library_choice(poses, cameras, depths, len(poses), min_angle_deg, max_angle_deg)
         return [
             [j for j in row if recordings[j] == recordings[i]][:partners]

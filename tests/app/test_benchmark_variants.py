@@ -1,8 +1,10 @@
 """Benchmark helpers that decide what a benchmark row measures (no data needed)."""
 
 import importlib
+import types
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 import relocfw.structure.tracks as tracks_module
@@ -32,6 +34,33 @@ def test_partners_within_recording_filters_and_restores(monkeypatch):
         assert tracks_module.covisible_partners is library_choice
 
 
+def test_partners_within_recording_reaches_the_library_build(monkeypatch):
+    # build_track_points looks the partner choice up in its module when it runs, so
+    # the swap takes effect there: the build stops at the choice with what it chose.
+    monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
+    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
+    monkeypatch.setattr(
+        tracks_module, "covisible_partners", lambda poses, *rest: [[1, 2], [0, 2], [0, 1]]
+    )
+    monkeypatch.setattr(tracks_module, "scene_depths", lambda poses: None)
+
+    class ChosenError(Exception):
+        pass
+
+    def stop(features, poses, cameras, partners, settings):
+        raise ChosenError(partners)
+
+    monkeypatch.setattr(tracks_module, "pair_matches", stop)
+    names = ["seq-01/frame-0", "seq-01/frame-1", "seq-02/frame-0"]
+    within = oracle.partners_within_recording(names, enabled=True)
+    with pytest.raises(ChosenError) as chosen, within:
+        tracks_module.build_track_points([], [None] * 3, [], tracks_module.TrackSettings())
+    assert chosen.value.args[0] == [[1], [0], []]
+    within = oracle.partners_within_recording(names, enabled=True)
+    with pytest.raises(ValueError, match="2 poses but 3 map image names"), within:
+        tracks_module.covisible_partners([None] * 2, None, None, 1, 1.5, 20.0)
+
+
 def test_partners_within_recording_restores_after_an_error(monkeypatch):
     monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
     oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
@@ -56,7 +85,11 @@ def test_colmap_points_rows_are_the_shipped_configs(monkeypatch):
     assert built["features, one solve"].rematch == "none"
     assert built["features_colmap"].image_scale == 1.0
     assert built["features_colmap"].rematch == "none"
-    assert built["features_rgb"].count == 20 and built["features_rgb"].rematch == "near"
+    rgb = built["features_rgb"]
+    assert (rgb.count, rgb.max_error_px, rgb.rematch) == (20, 16.0, "near")
+    assert rgb.triangulation["epipolar_px"] == 6.0
+    assert rgb.triangulation["max_reprojection_px"] == 6.0
+    assert all(refiner.metric is True for refiner in built.values())
     assert built["features_rgb, one solve"].rematch == "none"
     assert all(refiner.cache_dir is None for refiner in built.values())
 
@@ -80,3 +113,26 @@ def test_poselib_loss_scale_passes_the_scale_and_restores(monkeypatch):
         poselib.estimate_absolute_pose(None, None, None, {}, {})
     assert seen == [{"max_iterations": 5, "loss_scale": 2.0}, {}]
     assert poselib.estimate_absolute_pose is library_solve
+
+
+def test_poselib_loss_scale_reaches_relocfw_solver(monkeypatch):
+    poselib = pytest.importorskip("poselib")
+    monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
+    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
+    from relocfw.core.camera import PinholeCamera
+    from relocfw.structure.absolute_pose import solve_absolute_pose
+
+    seen = []
+
+    def library_solve(points_2d, points_3d, camera, ransac, bundle):
+        seen.append((ransac["max_reproj_error"], dict(bundle)))
+        return types.SimpleNamespace(q=[1.0, 0.0, 0.0, 0.0], t=[0.0, 0.0, 0.0]), {"num_inliers": 6}
+
+    monkeypatch.setattr(poselib, "estimate_absolute_pose", library_solve)
+    points_2d = np.random.default_rng(0).uniform(0, 100, (6, 2))
+    points_3d = np.random.default_rng(1).uniform(1, 2, (6, 3))
+    camera = PinholeCamera(100.0, 100.0, 50.0, 50.0, 100, 100)
+    with oracle.poselib_loss_scale(3.0):
+        answer = solve_absolute_pose(points_2d, points_3d, camera, 16.0, 4)
+    assert answer.success
+    assert seen == [(16.0, {"loss_scale": 3.0})]
