@@ -114,7 +114,7 @@ AUTO_HEAD_WIDTH = {True: 512, False: 256}
 
 
 def checked_head_width(value: object) -> int | str:
-    """ "auto" or a width >= 1, or a ConfigError naming refine.head_width."""
+    """The value "auto" or a width >= 1, or a ConfigError naming refine.head_width."""
     if value == "auto":
         return "auto"
     return integer_at_least("refine.head_width", value, 1)
