@@ -47,6 +47,7 @@ from benchmarks.rgb_map_quality import LazyViews, query_errors
 from relocfw.core.camera import PinholeCamera
 from relocfw.data.frames import Frame
 from relocfw.data.sevenscenes import load_sevenscenes
+from relocfw.plugins.sequence_refiner import recording_of
 from relocfw.structure import build_by_triangulation
 from relocfw.structure.covisibility import scene_depths
 from relocfw.structure.map_quality import depth_agreement, point_share
@@ -136,7 +137,7 @@ def partners_within_recording(names: list[str], enabled: bool):
     if not enabled:
         yield
         return
-    recordings = [name.rsplit("/", 1)[0] for name in names]
+    recordings = [recording_of(name) for name in names]
     library_choice = tracks_module.covisible_partners
 
     def within(poses, cameras, depths, partners, min_angle_deg, max_angle_deg):
@@ -196,7 +197,7 @@ def partners_across_recordings(map_frames: list[Frame]) -> float:
         settings.min_partner_angle_deg,
         settings.max_partner_angle_deg,
     )
-    recordings = [str(frame.name).rsplit("/", 1)[0] for frame in map_frames]
+    recordings = [recording_of(str(frame.name)) for frame in map_frames]
     pairs = [(i, j) for i, row in enumerate(chosen) for j in row]
     return sum(recordings[i] != recordings[j] for i, j in pairs) / max(len(pairs), 1)
 
