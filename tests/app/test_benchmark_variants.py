@@ -12,9 +12,14 @@ import relocfw.structure.tracks as tracks_module
 BENCHMARKS = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
-def test_partners_within_recording_filters_and_restores(monkeypatch):
+@pytest.fixture
+def oracle(monkeypatch):
+    """benchmarks/rgb_settings_oracle.py, imported as its docstring runs it (-m)."""
     monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
-    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
+    return importlib.import_module("benchmarks.rgb_settings_oracle")
+
+
+def test_partners_within_recording_filters_and_restores(oracle, monkeypatch):
     asked = []
 
     def library_choice(poses, cameras, depths, partners, low, high):
@@ -34,11 +39,9 @@ def test_partners_within_recording_filters_and_restores(monkeypatch):
         assert tracks_module.covisible_partners is library_choice
 
 
-def test_partners_within_recording_reaches_the_library_build(monkeypatch):
+def test_partners_within_recording_reaches_the_library_build(oracle, monkeypatch):
     # build_track_points looks the partner choice up in its module when it runs, so
     # the swap takes effect there: the build stops at the choice with what it chose.
-    monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
-    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
     monkeypatch.setattr(
         tracks_module, "covisible_partners", lambda poses, *rest: [[1, 2], [0, 2], [0, 1]]
     )
@@ -61,9 +64,7 @@ def test_partners_within_recording_reaches_the_library_build(monkeypatch):
         tracks_module.covisible_partners([None] * 2, None, None, 1, 1.5, 20.0)
 
 
-def test_partners_within_recording_restores_after_an_error(monkeypatch):
-    monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
-    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
+def test_partners_within_recording_restores_after_an_error(oracle):
     before = tracks_module.covisible_partners
     with pytest.raises(RuntimeError), oracle.partners_within_recording(["a/0"], enabled=True):
         raise RuntimeError("build failed")
@@ -94,10 +95,8 @@ def test_colmap_points_rows_are_the_shipped_configs(monkeypatch):
     assert all(refiner.cache_dir is None for refiner in built.values())
 
 
-def test_poselib_loss_scale_passes_the_scale_and_restores(monkeypatch):
+def test_poselib_loss_scale_passes_the_scale_and_restores(oracle, monkeypatch):
     poselib = pytest.importorskip("poselib")
-    monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
-    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
     seen = []
 
     def library_solve(points_2d, points_3d, camera, ransac, bundle):
@@ -115,10 +114,8 @@ def test_poselib_loss_scale_passes_the_scale_and_restores(monkeypatch):
     assert poselib.estimate_absolute_pose is library_solve
 
 
-def test_poselib_loss_scale_reaches_relocfw_solver(monkeypatch):
+def test_poselib_loss_scale_reaches_relocfw_solver(oracle, monkeypatch):
     poselib = pytest.importorskip("poselib")
-    monkeypatch.syspath_prepend(str(BENCHMARKS.parent))
-    oracle = importlib.import_module("benchmarks.rgb_settings_oracle")
     from relocfw.core.camera import PinholeCamera
     from relocfw.structure.absolute_pose import solve_absolute_pose
 
