@@ -37,8 +37,8 @@ import cv2
 import numpy as np
 from common import DEFAULT_CACHE, write_json  # benchmarks/, the script's own folder
 from hydra import compose, initialize_config_module
-from hydra.utils import instantiate
 
+from relocfw.app.methods import build
 from relocfw.core.geometry import orientation_error_deg, pose_from_matrix
 from relocfw.core.imaging import read_rgb
 from relocfw.core.refinement import MapImage, RefineQuery
@@ -178,8 +178,9 @@ def composed_refiner(overrides: tuple[str, ...], cache_dir: str | None) -> Featu
         f"cache_dir={cache_dir}" if cache_dir else "refine.cache_dir=null",
     ]
     with initialize_config_module(config_module="relocfw.conf", version_base="1.3"):
-        cfg = compose("config", overrides=[*overrides, *common])
-    refiner = instantiate(cfg.refine)
+        cfg = compose("config", overrides=[*overrides, *common], return_hydra_config=True)
+    # relocfw's own builder: a refiner that cannot be made is one message naming it.
+    refiner = build(cfg, "refine", cfg.hydra.runtime.choices["refine"])
     if not isinstance(refiner, FeaturesRefiner):
         raise SystemExit(f"{' '.join(overrides)} does not build a FeaturesRefiner")
     return refiner
