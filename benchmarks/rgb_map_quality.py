@@ -55,9 +55,9 @@ from relocfw.structure import (
     localize_against,
 )
 from relocfw.structure.colmap_structure import build_from_colmap_points
+from relocfw.structure.depth_structure import depth_of_view
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_quality import depth_agreement, point_share
-from relocfw.structure.structure_map import depth_of_view
 
 ROOT = Path("/work/shared/data/7scenes-redkitchen")
 SCENE = ROOT / "redkitchen"

@@ -81,7 +81,7 @@ from structure_query import (
 from relocfw.core.camera import PinholeCamera
 from relocfw.data.sevenscenes import SceneCameras, scene_cameras
 from relocfw.structure import MapView, StructureMap, build_from_depth, localize_against
-from relocfw.structure import structure_map as structure_module
+from relocfw.structure import depth_structure as structure_module
 
 ALL_SEQUENCES = tuple(range(1, 8))
 # The functions build_from_depth looks up in its module, and the part each one is.

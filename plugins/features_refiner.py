@@ -97,7 +97,9 @@ from relocfw.structure import (
     MapView,
     MapViewpoints,
     StructureMap,
+    build_by_triangulation,
     build_from_colmap_points,
+    build_from_depth,
     cached_structure_map,
     keyframes_by_pose,
     localize_against,
@@ -378,7 +380,7 @@ class FeaturesRefiner(PoseRefiner):
         def build() -> StructureMap:
             scale = self.image_scale
             if source == "depth":
-                return StructureMap.build_from_depth(
+                return build_from_depth(
                     map_views, self.max_features, quiet=quiet, image_scale=scale
                 )
             if source == "colmap":
@@ -391,7 +393,7 @@ class FeaturesRefiner(PoseRefiner):
                     image_scale=scale,
                     **parameters,
                 )
-            return StructureMap.build_by_triangulation(
+            return build_by_triangulation(
                 map_views, self.max_features, quiet=quiet, image_scale=scale, **parameters
             )
 

@@ -77,12 +77,8 @@ from relocfw.structure.relative_pose import (
     query_ray,
     solve_relative_pose,
 )
-from relocfw.structure.structure_map import (
-    StructureMap,
-    cached_structure_map,
-    on_descriptor_grid,
-    structure_key,
-)
+from relocfw.structure.structure_cache import cached_structure_map, structure_key
+from relocfw.structure.structure_map import StructureMap, on_descriptor_grid
 
 STATE_LABEL = "refine=relative state"
 # The options a state keeps: integers with their least values, numbers with their

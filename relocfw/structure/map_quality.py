@@ -1,7 +1,7 @@
 """How good an RGB-only map is: how many keypoints got a 3-D point, and how far those
 points lie from where the map images' depth maps put the same keypoints.
 
-Depth is read as build_from_depth reads it (structure_map.depth_of_view): a view
+Depth is read as build_from_depth reads it (depth_structure.depth_of_view): a view
 with a depth camera (7-Scenes: the 585 sensor and the Kinect's depth-to-colour
 transform) has its depth registered into the colour image first
 (relocfw.structure.registration), so each keypoint is compared with the depth of its
@@ -18,9 +18,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from relocfw.core.errors import DataError
+from relocfw.structure.depth_structure import depth_of_view
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
-from relocfw.structure.structure_map import StructureMap, depth_of_view
+from relocfw.structure.structure_map import StructureMap
 
 
 @dataclass(frozen=True)

@@ -25,6 +25,7 @@ from relocfw.core.imaging import check_rgb_image
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.values import Pose
 from relocfw.structure.absolute_pose import POSELIB_MIN_ITERATIONS, solve_absolute_pose
+from relocfw.structure.covisibility import optical_axes
 from relocfw.structure.features import LocalFeatures, checked_image_scale, extract_rootsift
 from relocfw.structure.match_index import KnownMatches, MatchIndex
 from relocfw.structure.matching import (
@@ -34,7 +35,7 @@ from relocfw.structure.matching import (
     one_match_per_query,
 )
 from relocfw.structure.query_checks import checked_keyframes
-from relocfw.structure.structure_map import StructureMap, optical_axes, positions_of
+from relocfw.structure.structure_map import StructureMap, positions_of
 
 TIMED_PARTS = ("features", "matching", "solve")
 

@@ -19,12 +19,12 @@ from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError
 from relocfw.core.refinement import MapImage
 from relocfw.core.standardise import ZScore, check_features, k_nearest
-from relocfw.structure.structure_map import (
-    TRIANGULATION_METHODS,
+from relocfw.structure.tracks import TrackSettings
+from relocfw.structure.triangulated_structure import TRIANGULATION_METHODS
+from relocfw.structure.two_view_structure import (
     build_by_two_view_triangulation,
     median_camera_spacing,
 )
-from relocfw.structure.tracks import TrackSettings
 
 # On a map that is not metric, the smallest triangulation baseline as a share of the
 # median distance between neighbouring map images (see plugins/features_refiner.py).

@@ -10,7 +10,7 @@ running the encoder again. Each cell keeps:
 - its pixel in the ORIGINAL map image (relocfw.structure.scene_coordinate_cells) and
   its map image's index, for the reprojection loss (RGB-only training);
 - its world point where the map image has depth (NaN otherwise): depth registered
-  into the colour camera (relocfw.structure.structure_map.depth_of_view, the same
+  into the colour camera (relocfw.structure.depth_structure.depth_of_view, the same
   reading refine=features lifts keypoints with), read at the cell's pixel, lifted
   with the camera and the map pose. Cells without a depth reading are dropped in
   depth mode.
@@ -32,6 +32,7 @@ from relocfw.core.geometry import quaternion_to_matrix
 from relocfw.core.imaging import check_rgb_image
 from relocfw.core.progress import Progress
 from relocfw.core.refinement import MapImage
+from relocfw.structure.depth_structure import depth_of_view
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
 from relocfw.structure.scene_coordinate_cells import (
@@ -40,7 +41,6 @@ from relocfw.structure.scene_coordinate_cells import (
     encoder_input,
     random_jitter,
 )
-from relocfw.structure.structure_map import depth_of_view
 
 # An encoder: [1, 3, h, w] pixels in [0, 1] -> [1, C, h / 8, w / 8] features.
 Encoder = Callable[[torch.Tensor], torch.Tensor]

@@ -12,12 +12,10 @@ import pytest
 from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.core.values import Pose
 from relocfw.data.sevenscenes import REGISTERED_MARKER
+from relocfw.structure.depth_structure import build_from_depth
 from relocfw.structure.map_view import MapView
-from relocfw.structure.structure_map import (
-    StructureMap,
-    build_by_triangulation,
-    build_from_depth,
-)
+from relocfw.structure.structure_map import StructureMap
+from relocfw.structure.triangulated_structure import build_by_triangulation
 from tests.structure.textured_world import (
     Quad,
     depth_map,

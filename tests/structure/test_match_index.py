@@ -8,10 +8,10 @@ import pytest
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import orientation_error_deg
 from relocfw.structure import match_index as match_index_module
+from relocfw.structure.depth_structure import build_from_depth
 from relocfw.structure.features import extract_rootsift, to_full_image
 from relocfw.structure.match_index import KnownMatches, MatchIndex
 from relocfw.structure.query_solver import correspondences_of, localize_against
-from relocfw.structure.structure_map import build_from_depth
 from tests.structure.test_features import textured_image
 
 

@@ -9,9 +9,9 @@ import pytest
 
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import orientation_error_deg
+from relocfw.structure.depth_structure import build_from_depth
 from relocfw.structure.features import extract_rootsift
 from relocfw.structure.query_solver import StructureAnswer, keyframes_by_pose, localize_against
-from relocfw.structure.structure_map import build_from_depth
 from tests.structure.textured_world import looking_at, make_texture
 
 

@@ -15,9 +15,9 @@ from relocfw.core.camera import SEVENSCENES_DEFAULT
 from relocfw.core.geometry import orientation_error_deg, pose_from_matrix
 from relocfw.core.imaging import read_rgb
 from relocfw.data.sevenscenes import read_pose_file
+from relocfw.structure.depth_structure import build_from_depth
 from relocfw.structure.map_view import MapView
 from relocfw.structure.query_solver import keyframes_by_pose, localize_against
-from relocfw.structure.structure_map import build_from_depth
 
 SEQUENCE = (
     Path(__file__).resolve().parents[3]

@@ -21,10 +21,11 @@ from relocfw.data.sevenscenes import (
     SevenScenes,
     load_sevenscenes,
 )
+from relocfw.structure.depth_structure import build_from_depth
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
 from relocfw.structure.registration import register_depth
-from relocfw.structure.structure_map import build_from_depth, structure_key
+from relocfw.structure.structure_cache import structure_key
 from tests.structure.textured_world import (
     depth_map,
     looking_at,

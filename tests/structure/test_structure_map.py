@@ -11,16 +11,13 @@ import pytest
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import orientation_error_deg
 from relocfw.core.values import Pose
+from relocfw.structure.depth_structure import build_from_depth
 from relocfw.structure.features import LocalFeatures
 from relocfw.structure.query_solver import localize_against
-from relocfw.structure.structure_map import (
-    StructureMap,
-    build_by_triangulation,
-    build_from_depth,
-    cached_structure_map,
-    structure_key,
-    triangulation_partners,
-)
+from relocfw.structure.structure_cache import cached_structure_map, structure_key
+from relocfw.structure.structure_map import StructureMap
+from relocfw.structure.triangulated_structure import build_by_triangulation
+from relocfw.structure.two_view_structure import triangulation_partners
 from tests.structure.textured_world import (
     depth_map,
     looking_at,
@@ -122,7 +119,7 @@ def test_depth_in_other_units_is_read_in_its_units(synthetic_scene, tmp_path):
     path = write_depth_png(synthetic_scene.depths[0], tmp_path / "tum.png", 5000.0)
     tum_view = dataclasses.replace(view, depth_path=path, depth_units_per_metre=5000)
     # The class's own name for the builder, as a caller may spell it.
-    structure = StructureMap.build_from_depth([tum_view], max_features=300, quiet=True)
+    structure = build_from_depth([tum_view], max_features=300, quiet=True)
     errors = point_errors(structure, synthetic_scene, 0)
     assert len(errors) == 300 and np.median(errors) < 0.002
 

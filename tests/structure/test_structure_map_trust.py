@@ -14,14 +14,11 @@ import pytest
 
 from relocfw import ConfigError, DataError, MapImage, Pose, RefineQuery
 from relocfw.plugins.features_refiner import FeaturesRefiner
-from relocfw.structure import structure_map
+from relocfw.structure import structure_cache
+from relocfw.structure.depth_structure import build_from_depth
 from relocfw.structure.query_solver import keyframes_by_pose
-from relocfw.structure.structure_map import (
-    StructureMap,
-    build_from_depth,
-    cached_structure_map,
-    structure_key,
-)
+from relocfw.structure.structure_cache import cached_structure_map, structure_key
+from relocfw.structure.structure_map import StructureMap
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 
@@ -82,7 +79,7 @@ def test_the_key_sees_the_opencv_and_relocfw_versions(depth_structure, monkeypat
     before = key_of(depth_structure, {})
     monkeypatch.setattr(cv2, "__version__", "0.0.1")
     with_other_opencv = key_of(depth_structure, {})
-    monkeypatch.setattr(structure_map, "VERSION", "0.0.1")
+    monkeypatch.setattr(structure_cache, "VERSION", "0.0.1")
     with_other_relocfw = key_of(depth_structure, {})
     assert len({before, with_other_opencv, with_other_relocfw}) == 3
 

@@ -12,7 +12,6 @@ from relocfw.plugins.features_refiner import FeaturesRefiner
 from relocfw.structure.covisibility import covisible_partners, scene_depths
 from relocfw.structure.features import LocalFeatures
 from relocfw.structure.map_view import MapView
-from relocfw.structure.structure_map import build_by_triangulation
 from relocfw.structure.tracks import (
     TrackSettings,
     epipolar_distances,
@@ -21,6 +20,7 @@ from relocfw.structure.tracks import (
     track_views,
     tracks_of_matches,
 )
+from relocfw.structure.triangulated_structure import build_by_triangulation
 from relocfw.structure.triangulation import triangulate, world_to_camera
 from tests.structure.textured_world import looking_at, make_world, render
 

@@ -9,12 +9,9 @@ from relocfw.core.camera import SEVENSCENES_DEFAULT, PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.values import Pose
 from relocfw.structure.map_view import MapView
-from relocfw.structure.structure_map import (
-    build_by_triangulation,
-    median_of_candidates,
-    triangulation_partners,
-)
+from relocfw.structure.triangulated_structure import build_by_triangulation
 from relocfw.structure.triangulation import triangulate
+from relocfw.structure.two_view_structure import median_of_candidates, triangulation_partners
 from tests.structure.scenes import to_camera
 from tests.structure.textured_world import looking_at, make_world, render, surface_points
 
@@ -140,7 +137,7 @@ def test_impossible_bounds_raise_a_config_error_naming_them(options, name):
 
 
 # A map image's point is the component-wise median of what its partners triangulate
-# (relocfw.structure.structure_map.build_by_triangulation): one wrong partner among
+# (relocfw.structure.two_view_structure.build_by_two_view_triangulation): one wrong partner among
 # three must not move it, where a mean or the nearest partner alone would follow it.
 
 
