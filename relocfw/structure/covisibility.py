@@ -184,7 +184,8 @@ def covisible_partners(
     count = len(poses)
     if count == 0:
         return []
-    rotations = np.stack([quaternion_to_matrix(p.quaternion).T for p in poses])
+    # World-to-camera rotations, all M in one scipy call.
+    rotations = quaternion_to_matrix(np.stack([p.quaternion for p in poses])).transpose(0, 2, 1)
     intrinsics = np.array([[c.fx, c.fy, c.cx, c.cy, c.width, c.height] for c in cameras])
     look_at = centres + depths[:, None] * axes
     target = math.log(math.sqrt(min_angle_deg * max_angle_deg))
