@@ -7,8 +7,11 @@ posed views), `covisibility` and `tracks` (an RGB-only map's partners and multi-
 tracks), `map_quality` (how many keypoints have a point, how far from depth),
 `absolute_pose` (P3P LO-RANSAC and refinement through PoseLib);
 `map_view` (a map image as the builders take it), `structure_map` (the map's
-features and 3-D points, built from depth or by triangulation, one npz file, a
-cache), `colmap_structure` (the same from a COLMAP model's own 3-D points),
+features and 3-D points, one npz file); one builder per 3-D source:
+`depth_structure`, `triangulated_structure` (choosing `track_structure` or
+`two_view_structure`) and `colmap_structure` (a COLMAP model's own 3-D points), with
+`view_features` (map views checked, and read once with their features);
+`structure_cache` (a map's content key, one cached file per key),
 `query_solver` (one query's pose against the map, keyframe choice). The pinhole
 camera is `relocfw.core.camera` (relocfw.data reads it from files and may import
 only the core); it is re-exported here.

@@ -1,7 +1,7 @@
 """refine.map_store=compact: the cached structure map, written once as a compact map
 folder beside its cache entry and answered from there, memory-mapped.
 
-The structure cache holds a map as one npz file (relocfw.structure.structure_map:
+The structure cache holds a map as one npz file (relocfw.structure.structure_cache:
 `cache_dir/structure/<key>.npz`), which is read whole into memory. A compact map
 (relocfw.structure.compact_map) is a folder of flat arrays that is opened
 memory-mapped, so a query reads only its keyframes' rows. The folder goes beside the

@@ -255,9 +255,9 @@ class StructureMap:
         Args:
             path: the file to write (its folder is created); an existing file is
                 replaced only when the new one is complete.
-            key: the content key (`structure_key`) the map was built for, recorded in
-                the file so `cached_structure_map` can tell a stale or copied file
-                under that key's name; None records none.
+            key: the content key (relocfw.structure.structure_cache.structure_key) the
+                map was built for, recorded in the file so `cached_structure_map` can
+                tell a stale or copied file under that key's name; None records none.
 
         Raises:
             DataError: when a descriptor lies outside [0, 1] (not RootSIFT).

@@ -1,5 +1,6 @@
-"""Map views as every structure builder reads them: checked one at a time, each
-read once, its RootSIFT features put on the stored descriptor grid."""
+"""Map views as the structure builders read them: each checked as it is read
+(`checked_views`, `checked_view`: every builder), and for the RGB-only builders read
+once with its RootSIFT features on the stored descriptor grid (`features_of_views`)."""
 
 from __future__ import annotations
 

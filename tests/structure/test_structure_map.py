@@ -118,7 +118,6 @@ def test_depth_in_other_units_is_read_in_its_units(synthetic_scene, tmp_path):
     view = synthetic_scene.views[0]
     path = write_depth_png(synthetic_scene.depths[0], tmp_path / "tum.png", 5000.0)
     tum_view = dataclasses.replace(view, depth_path=path, depth_units_per_metre=5000)
-    # The class's own name for the builder, as a caller may spell it.
     structure = build_from_depth([tum_view], max_features=300, quiet=True)
     errors = point_errors(structure, synthetic_scene, 0)
     assert len(errors) == 300 and np.median(errors) < 0.002
