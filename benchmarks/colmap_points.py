@@ -23,6 +23,15 @@ network's descriptor: a 16 x 12 grey thumbnail, mean-subtracted, unit norm. A
 query that falls back answers the mean map pose; its error counts as it is.
 
     .venv/bin/python benchmarks/colmap_points.py --map-every 6 --queries 100
+
+`--rows validation` chooses `refine=features_colmap`'s own settings on validation
+blocks of the training sequences (the map from --map-sequences, the queries from
+another training sequence): SIFT at half size and matching again, each alone and
+together, against its defaults (VALIDATION_ROWS, with the rule set before the runs).
+
+    .venv/bin/python benchmarks/colmap_points.py --rows validation \
+        --map-sequences 1 3 5 --query-sequence 7 --workspace /tmp/colmap_val_A \
+        --out benchmarks/results/colmap_validation_A.json
 """
 
 from __future__ import annotations
@@ -64,6 +73,25 @@ ROWS = (
 )
 # Paired query by query: the default (matching again) against one solve.
 PAIRS = (("features", "features, one solve"), ("features_rgb", "features_rgb, one solve"))
+# refine=features_colmap's settings on validation blocks A (map 1, 3, 5; queries 7)
+# and B (map 1, 5, 7; queries 3). The rule, set before the runs (refine=features' rule
+# for matching again): a setting is adopted when its share within 5 cm / 5 deg,
+# averaged over A and B, is at least 2 points above the defaults' row and its paired
+# position error is significantly worse on neither block; when both settings pass
+# alone, the row with both decides if it passes too and has the highest average, else
+# the better of the two alone.
+AGAIN = ("refine.rematch=near", "refine.rematch_answer=more_inliers")
+VALIDATION_ROWS = (
+    ("features_colmap", ("refine=features_colmap",)),
+    ("features_colmap, matching again", ("refine=features_colmap", *AGAIN)),
+    ("features_colmap, SIFT at half size", ("refine=features_colmap", "refine.image_scale=0.5")),
+    (
+        "features_colmap, half size, matching again",
+        ("refine=features_colmap", "refine.image_scale=0.5", *AGAIN),
+    ),
+)
+VALIDATION_PAIRS = tuple((label, "features_colmap") for label, _ in VALIDATION_ROWS[1:])
+ROW_SETS = {"default": (ROWS, PAIRS), "validation": (VALIDATION_ROWS, VALIDATION_PAIRS)}
 
 
 def thumbnail(image: np.ndarray) -> np.ndarray:
@@ -79,6 +107,7 @@ def pose_of(scene: Path, name: str) -> Pose:
 
 
 def frames_every(sequence: int, every: int) -> list[str]:
+    """Every `every`-th frame name of one 7-Scenes sequence (100 frames each here)."""
     return [f"seq-{sequence:02d}/frame-{i:06d}.color.jpg" for i in range(0, 100, every)]
 
 
@@ -202,6 +231,8 @@ def main() -> None:
     parser.add_argument("--map-every", type=int, default=6)
     parser.add_argument("--queries", type=int, default=100)
     parser.add_argument("--query-sequence", type=int, default=2)
+    parser.add_argument("--map-sequences", type=int, nargs="+", default=list(MAP_SEQUENCES))
+    parser.add_argument("--rows", choices=sorted(ROW_SETS), default="default")
     parser.add_argument("--max-features", type=int, default=2048, help="COLMAP's SIFT")
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--workspace", default=str(DEFAULT_CACHE / "colmap_points"))
@@ -211,7 +242,10 @@ def main() -> None:
     )
     args = parser.parse_args()
     cv2.setNumThreads(args.threads)
-    names = [n for s in MAP_SEQUENCES for n in frames_every(s, args.map_every)]
+    if args.query_sequence in args.map_sequences:
+        parser.error(f"--query-sequence {args.query_sequence} is one of --map-sequences")
+    names = [n for s in args.map_sequences for n in frames_every(s, args.map_every)]
+    row_set, pairs = ROW_SETS[args.rows]
     queries = spread(frames_every(args.query_sequence, 1), args.queries)
     root, model_build_s = build_model(args, names + queries, queries)
     pycolmap_module().logging.minloglevel = 2
@@ -219,13 +253,13 @@ def main() -> None:
         str(root), test=queries, model="colmap/sparse", images="images", metric=True
     )
     rows = {}
-    for label, overrides in ROWS:
+    for label, overrides in row_set:
         refiner = composed_refiner(overrides, args.cache_dir)
         rows[label] = {"overrides": list(overrides), "keyframes": refiner.count}
         rows[label].update(run(refiner, dataset))
         print(label, rows[label], flush=True)
     paired = {}
-    for new, old in PAIRS:
+    for new, old in pairs:
         paired[f"{new} minus {old}"] = {
             kind: paired_test(
                 np.array([rows[new][f"{kind}_errors_{unit}"]]),
@@ -237,8 +271,9 @@ def main() -> None:
         "benchmark": "colmap_points",
         "command": "benchmarks/colmap_points.py "
         f"--map-every {args.map_every} --queries {args.queries} "
-        f"--query-sequence {args.query_sequence} --max-features {args.max_features}",
-        "map": f"Red Kitchen sequences {list(MAP_SEQUENCES)}, every {args.map_every}th frame",
+        f"--query-sequence {args.query_sequence} --max-features {args.max_features} "
+        f"--map-sequences {' '.join(map(str, args.map_sequences))} --rows {args.rows}",
+        "map": f"Red Kitchen sequences {args.map_sequences}, every {args.map_every}th frame",
         "map_images": len(names),
         "query_images": len(queries),
         "camera": "PINHOLE 525 525 320 240 (COLMAP's pixels)",

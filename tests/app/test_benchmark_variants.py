@@ -95,6 +95,33 @@ def test_colmap_points_rows_are_the_shipped_configs(monkeypatch):
     assert all(refiner.cache_dir is None for refiner in built.values())
 
 
+def test_colmap_points_validation_rows_vary_one_setting_each(monkeypatch):
+    pytest.importorskip("poselib")
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    colmap_points = importlib.import_module("colmap_points")
+    built = {
+        label: colmap_points.composed_refiner(overrides, None)
+        for label, overrides in colmap_points.VALIDATION_ROWS
+    }
+    settings = {
+        label: (
+            refiner.structure_source,
+            refiner.image_scale,
+            refiner.rematch,
+            refiner.rematch_answer,
+        )
+        for label, refiner in built.items()
+    }
+    assert settings == {
+        "features_colmap": ("colmap", 1.0, "none", "more_inliers"),
+        "features_colmap, matching again": ("colmap", 1.0, "near", "more_inliers"),
+        "features_colmap, SIFT at half size": ("colmap", 0.5, "none", "more_inliers"),
+        "features_colmap, half size, matching again": ("colmap", 0.5, "near", "more_inliers"),
+    }
+    # Every row is paired against the defaults' row.
+    assert {old for _, old in colmap_points.VALIDATION_PAIRS} == {"features_colmap"}
+
+
 def test_poselib_loss_scale_passes_the_scale_and_restores(oracle, monkeypatch):
     poselib = pytest.importorskip("poselib")
     seen = []
