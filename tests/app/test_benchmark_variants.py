@@ -84,8 +84,8 @@ def test_colmap_points_rows_are_the_shipped_configs(monkeypatch):
         "more_inliers",
     )
     assert built["features, one solve"].rematch == "none"
-    assert built["features_colmap"].image_scale == 1.0
-    assert built["features_colmap"].rematch == "none"
+    assert built["features_colmap"].image_scale == 0.5
+    assert built["features_colmap"].rematch == "near"
     rgb = built["features_rgb"]
     assert (rgb.count, rgb.max_error_px, rgb.rematch) == (20, 16.0, "near")
     assert rgb.triangulation["epipolar_px"] == 6.0

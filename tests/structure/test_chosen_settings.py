@@ -32,7 +32,12 @@ CHOSEN = {
         "triangulation.max_reprojection_px": 6.0,
         "triangulation.method": "tracks",
     },
-    "features_colmap": {"structure": "colmap", "image_scale": 1.0, "rematch": "none"},
+    "features_colmap": {
+        "structure": "colmap",
+        "image_scale": 0.5,
+        "rematch": "near",
+        "rematch_answer": "more_inliers",
+    },
     # docs/scene_coordinates.md, "Settings tried on validation".
     "scene_coordinates": {"head_width": "auto", "max_error_px": "auto"},
 }
