@@ -119,15 +119,17 @@ def spread(names: list[str], count: int) -> list[str]:
 
 def build_model(
     args: argparse.Namespace, names: list[str], queries: list[str]
-) -> tuple[Path, float | None]:
-    """The COLMAP project folder (sparse model + `images` link), built or reused, and
-    the seconds the build took (None when reused)."""
+) -> tuple[Path, float | None, bool]:
+    """The COLMAP project folder (sparse model + `images` link), built or reused; the
+    seconds its build took (kept beside it, so a reuse reports them; None where a
+    reused workspace does not record them); whether it was reused."""
     root = Path(args.workspace).expanduser()
     marker = root / "built.txt"
+    timing = root / "build_seconds.txt"
     wanted = "\n".join([*names, "--", *queries, str(args.max_features)])
     if marker.is_file() and marker.read_text() == wanted:
         print(f"reusing the COLMAP model in {root}")
-        return root, None
+        return root, float(timing.read_text()) if timing.is_file() else None, True
     started = time.perf_counter()
     triangulate_posed_images(
         args.scene,
@@ -141,10 +143,11 @@ def build_model(
     )
     (root / "images").unlink(missing_ok=True)
     (root / "images").symlink_to(Path(args.scene).resolve())
-    marker.write_text(wanted)
     seconds = time.perf_counter() - started
+    timing.write_text(repr(seconds))
+    marker.write_text(wanted)
     print(f"COLMAP model built in {seconds:.1f} s")
-    return root, seconds
+    return root, seconds, False
 
 
 def run(refiner: FeaturesRefiner, dataset: ColmapDataset) -> dict:
@@ -248,7 +251,7 @@ def main() -> None:
     names = [n for s in args.map_sequences for n in frames_every(s, args.map_every)]
     row_set, pairs = ROW_SETS[args.rows]
     queries = spread(frames_every(args.query_sequence, 1), args.queries)
-    root, model_build_s = build_model(args, names + queries, queries)
+    root, model_build_s, model_reused = build_model(args, names + queries, queries)
     pycolmap_module().logging.minloglevel = 2
     dataset = ColmapDataset(
         str(root), test=queries, model="colmap/sparse", images="images", metric=True
@@ -279,7 +282,8 @@ def main() -> None:
         "query_images": len(queries),
         "camera": "PINHOLE 525 525 320 240 (COLMAP's pixels)",
         "model": model_summary(root / "colmap" / "sparse"),
-        "model_build_s": model_build_s,  # None: reused from an earlier run
+        "model_build_s": model_build_s,  # the build's, when it was built (None: unknown)
+        "model_reused": model_reused,
         "retrieval": f"{THUMBNAIL[0]}x{THUMBNAIL[1]} grey thumbnails (each row's keyframes)",
         "rows": rows,
         "paired": paired,
