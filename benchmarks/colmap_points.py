@@ -61,6 +61,7 @@ from relocfw.report.statistics import paired_test
 
 SCENE = Path("/work/shared/data/7scenes-redkitchen/redkitchen")
 MAP_SEQUENCES = (1, 3, 5, 7)
+TEST_SEQUENCES = (2, 4, 6)  # the default (near) split's queries
 COLOUR_CAMERA = ColmapCamera(1, "PINHOLE", 640, 480, (525.0, 525.0, 320.0, 240.0))
 THUMBNAIL = (16, 12)
 # Each row: its label and the overrides that compose it (refine= first).
@@ -130,6 +131,9 @@ def build_model(
     if marker.is_file() and marker.read_text() == wanted:
         print(f"reusing the COLMAP model in {root}")
         return root, float(timing.read_text()) if timing.is_file() else None, True
+    # A build stopped half way must not leave the last model's marker over its files.
+    marker.unlink(missing_ok=True)
+    timing.unlink(missing_ok=True)
     started = time.perf_counter()
     triangulate_posed_images(
         args.scene,
@@ -248,6 +252,14 @@ def main() -> None:
     cv2.setNumThreads(args.threads)
     if args.query_sequence in args.map_sequences:
         parser.error(f"--query-sequence {args.query_sequence} is one of --map-sequences")
+    if len(set(args.map_sequences)) != len(args.map_sequences):
+        parser.error(f"--map-sequences {args.map_sequences} names a sequence twice")
+    if args.rows == "validation" and args.query_sequence in TEST_SEQUENCES:
+        # Settings are chosen on training sequences only, never on the test split.
+        parser.error(
+            f"--rows validation answers sequence {args.query_sequence}, one of the test "
+            f"split's {TEST_SEQUENCES}: choose a training sequence outside --map-sequences"
+        )
     names = [n for s in args.map_sequences for n in frames_every(s, args.map_every)]
     row_set, pairs = ROW_SETS[args.rows]
     queries = spread(frames_every(args.query_sequence, 1), args.queries)

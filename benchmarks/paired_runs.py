@@ -26,6 +26,10 @@ from relocfw.report.statistics import paired_test
 
 ERRORS = {"position_m": "position_error_m", "orientation_deg": "orientation_error_deg"}
 WITHIN = (0.05, 5.0)  # the 5 cm / 5 deg share reported beside the test
+# What a row cost, per seed, from the run's summary_<scene>.json (stored beside the
+# errors so the ms a report cites are in the JSON too): the median ms per query, and
+# a refiner's median ms per part and median confidence where it reports them.
+COST_PREFIXES = ("refine_median_ms_", "refine_median_confidence")
 
 
 # The "seed" of a run of one training seed, whose results lie in the run's own folder.
@@ -66,6 +70,29 @@ def row_results(run: Path, seed: int, method: str) -> tuple[list[str], np.ndarra
     return frames, np.array(errors), np.array(fell_back)
 
 
+def row_costs(run: Path, seed: int, method: str) -> dict[str, float]:
+    """One row's median ms per query (and its refiner's parts) in one seed, from the
+    run's summary JSON; {} where the run wrote none (a folder of an older run)."""
+    files = sorted(seed_folder(run, seed).glob("summary_*.json"))
+    if len(files) != 1:
+        return {}
+    for record in json.loads(files[0].read_text()):
+        if record.get("method") == method:
+            costs = {"median_ms": 1000.0 * float(record["median_seconds_per_query"])}
+            for key, value in record.items():
+                if key.startswith(COST_PREFIXES) and value not in (None, ""):
+                    costs[key] = float(value)
+            return costs
+    return {}
+
+
+def costs_over_seeds(run: Path, method: str, seeds: list[int]) -> dict[str, list[float]]:
+    """row_costs per seed, as lists in seed order (keys every seed reports)."""
+    per_seed = [row_costs(run, seed, method) for seed in seeds]
+    keys = set.intersection(*(set(costs) for costs in per_seed)) if per_seed else set()
+    return {key: [round(costs[key], 2) for costs in per_seed] for key in sorted(keys)}
+
+
 def side(run: Path, method: str, seeds: list[int]) -> tuple[list[str], np.ndarray, np.ndarray]:
     """[S, N, 2] errors and [S, N] fell-back flags of a row over seeds (same frames)."""
     frames, errors, flags = None, [], []
@@ -102,8 +129,18 @@ def compare_pair(new: tuple[Path, str], old: tuple[Path, str]) -> dict[str, obje
         raise DataError(f"{new[0]} and {old[0]}: the two rows answered different queries")
     result: dict[str, object] = {
         "seeds": seeds,
-        "new": {"run": str(new[0]), "method": new[1], **summary(new_errors, new_flags)},
-        "old": {"run": str(old[0]), "method": old[1], **summary(old_errors, old_flags)},
+        "new": {
+            "run": str(new[0]),
+            "method": new[1],
+            **summary(new_errors, new_flags),
+            "costs": costs_over_seeds(*new, seeds),
+        },
+        "old": {
+            "run": str(old[0]),
+            "method": old[1],
+            **summary(old_errors, old_flags),
+            "costs": costs_over_seeds(*old, seeds),
+        },
     }
     for number, kind in enumerate(ERRORS):
         result[kind] = paired_test(new_errors[..., number], old_errors[..., number], seed=0)

@@ -131,6 +131,8 @@ def checked_max_error(value: object) -> float | str:
     if value == "auto":
         return "auto"
     try:
+        if isinstance(value, bool):  # float(True) would be a 1 px bound
+            raise ConfigError("a bool")
         return positive_number("refine.max_error_px", value)
     except ConfigError:
         raise ConfigError(

@@ -274,6 +274,9 @@ def test_max_error_px_auto_follows_the_targets_and_reaches_the_solve(room, tmp_p
     rgb_only = SceneCoordinatesRefiner(depth=False, **tiny)
     rgb_only.fit(views, NO_DESCRIPTORS[:2])
     assert rgb_only.max_error_px == AUTO_MAX_ERROR_PX[False] == 10.0
+    # A query is solved with the resolved bound (None would fail in the solver).
+    answer = rgb_only.refine(asked(views[0].image))
+    assert np.isfinite(answer.pose.position).all()
     asked_for = SceneCoordinatesRefiner(depth=True, **{**tiny, "max_error_px": 7.5})
     asked_for.fit(views, NO_DESCRIPTORS[:2])
     assert asked_for.max_error_px == 7.5
@@ -288,7 +291,7 @@ def test_max_error_px_auto_follows_the_targets_and_reaches_the_solve(room, tmp_p
     assert set(again.fit_seconds) == {"cache"} and again.max_error_px == 16.0
 
 
-@pytest.mark.parametrize("bound", ["wide", 0, -2.0, "16px"])
+@pytest.mark.parametrize("bound", ["wide", 0, -2.0, "16px", True])
 def test_a_bad_max_error_px_names_the_key(bound):
     with pytest.raises(ConfigError, match="refine.max_error_px must be auto or a number"):
         SceneCoordinatesRefiner(max_error_px=bound)

@@ -43,7 +43,9 @@ def saved(tmp_path_factory: pytest.TempPathFactory) -> dict:
     _, views = room_views(folder)
     torch.manual_seed(0)
     network = {"input_size": 32, "width": 0.0625, "feature_dim": 16}
-    refine = {**QUICK, "depth": True}
+    # The inlier bound as the default gives it: "auto", resolved by fit (16 px with
+    # depth); the model file must answer with the resolved bound, not "auto".
+    refine = {**QUICK, "depth": True, "max_error_px": "auto"}
     relocalizer = Relocalizer(
         PoseNet(**network),
         ExhaustiveIndex(),
@@ -69,6 +71,7 @@ def saved(tmp_path_factory: pytest.TempPathFactory) -> dict:
 def test_a_loaded_model_answers_the_same_poses(saved):
     loaded = load_model(saved["path"])
     assert isinstance(loaded.refiner, SceneCoordinatesRefiner)
+    assert loaded.refiner.max_error_px == 16.0
     answers = [loaded.localize(q) for q in saved["queries"]]
     assert sum(not a.fell_back for a in saved["expected"]) >= 3  # real solves
     for a, b in zip(answers, saved["expected"], strict=True):
