@@ -130,14 +130,13 @@ def checked_max_error(value: object) -> float | str:
     refine.max_error_px."""
     if value == "auto":
         return "auto"
+    message = f"refine.max_error_px must be auto or a number of pixels above 0, got {value!r}"
+    if isinstance(value, bool):  # float(True) would be a 1 px bound
+        raise ConfigError(message)
     try:
-        if isinstance(value, bool):  # float(True) would be a 1 px bound
-            raise ConfigError("a bool")
         return positive_number("refine.max_error_px", value)
     except ConfigError:
-        raise ConfigError(
-            f"refine.max_error_px must be auto or a number of pixels above 0, got {value!r}"
-        ) from None
+        raise ConfigError(message) from None
 
 
 class SceneCoordinatesRefiner(PoseRefiner):
