@@ -71,14 +71,21 @@ def test_partners_within_recording_restores_after_an_error(oracle):
     assert tracks_module.covisible_partners is before
 
 
-def test_colmap_points_rows_are_the_shipped_configs(monkeypatch):
+@pytest.fixture
+def colmap_points(monkeypatch):
+    """benchmarks/colmap_points.py, imported as it runs (the script's own folder first)."""
     pytest.importorskip("poselib")
     monkeypatch.syspath_prepend(str(BENCHMARKS))
-    colmap_points = importlib.import_module("colmap_points")
-    built = {
-        label: colmap_points.composed_refiner(overrides, None)
-        for label, overrides in colmap_points.ROWS
-    }
+    return importlib.import_module("colmap_points")
+
+
+def built_rows(colmap_points, rows) -> dict:
+    """Each row's refiner, as the benchmark composes it (no structure cache)."""
+    return {label: colmap_points.composed_refiner(overrides, None) for label, overrides in rows}
+
+
+def test_colmap_points_rows_are_the_shipped_configs(colmap_points):
+    built = built_rows(colmap_points, colmap_points.ROWS)
     assert (built["features"].rematch, built["features"].rematch_answer) == (
         "near",
         "more_inliers",
@@ -95,14 +102,8 @@ def test_colmap_points_rows_are_the_shipped_configs(monkeypatch):
     assert all(refiner.cache_dir is None for refiner in built.values())
 
 
-def test_colmap_points_validation_rows_vary_one_setting_each(monkeypatch):
-    pytest.importorskip("poselib")
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    colmap_points = importlib.import_module("colmap_points")
-    built = {
-        label: colmap_points.composed_refiner(overrides, None)
-        for label, overrides in colmap_points.VALIDATION_ROWS
-    }
+def test_colmap_points_validation_rows_vary_one_setting_each(colmap_points):
+    built = built_rows(colmap_points, colmap_points.VALIDATION_ROWS)
     settings = {
         label: (
             refiner.structure_source,
