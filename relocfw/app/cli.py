@@ -25,6 +25,7 @@ from relocfw.app.tasks import (
     plugins,
     relocalize,
     serve,
+    topics,
     train,
 )
 from relocfw.app.torchrun import join_torchrun, leave_torchrun
@@ -42,6 +43,7 @@ TASKS: dict[str, TaskRun] = {
     "diagnose": diagnose.run,
     "export": export.run,
     "serve": serve.run,
+    "topics": topics.run,
 }
 FULL_ERROR = "HYDRA_FULL_ERROR"  # Hydra's own switch: raise instead of printing
 

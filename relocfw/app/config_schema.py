@@ -31,6 +31,7 @@ class Task(Enum):
     diagnose = "diagnose"
     export = "export"
     serve = "serve"
+    topics = "topics"
 
 
 class Scoring(Enum):
