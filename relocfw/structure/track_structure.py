@@ -52,11 +52,14 @@ def build_by_track_triangulation(
     max_features = integer_at_least("max_features", max_features, 1)
     # Checked before the slow part, so a wrong setting fails at once.
     checked = TrackSettings.of(settings, prefix="triangulation")
+    # Two phases, each counting the map's images: features, then matching each image
+    # with its partners (the slow part; triangulating the tracks after it is quick).
     count = len(views)
-    progress = Progress(count + 1, "map structure by tracks", quiet=quiet)
+    progress = Progress(count, "map structure by tracks (features)", quiet=quiet)
     features, poses, cameras, names = features_of_views(views, max_features, progress, image_scale)
-    points, partners = build_track_points(features, poses, cameras, checked)
-    progress.advance(suffix="tracks")
+    progress.close()
+    progress = Progress(count, "map structure by tracks (matching)", quiet=quiet)
+    points, partners = build_track_points(features, poses, cameras, checked, progress)
     progress.close()
     skipped = []
     for name, chosen, rows in zip(names, partners, points, strict=True):

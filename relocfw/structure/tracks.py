@@ -39,6 +39,7 @@ from scipy.sparse.csgraph import connected_components
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError
 from relocfw.core.options import integer_at_least, positive_number
+from relocfw.core.progress import Progress
 from relocfw.core.values import Pose
 from relocfw.structure.covisibility import covisible_partners, scene_depths
 from relocfw.structure.features import LocalFeatures
@@ -161,8 +162,10 @@ def pair_matches(
     cameras: Sequence[PinholeCamera],
     partners: Sequence[Sequence[int]],
     settings: TrackSettings,
+    progress: Progress | None = None,
 ) -> list[tuple[int, int, np.ndarray]]:
-    """The epipolar-consistent matches of every partner pair, each pair once.
+    """The epipolar-consistent matches of every partner pair, each pair once; one
+    `progress` step per image (the slow part of a track build).
 
     Returns:
         (i, j, [K, 2] int64 (keypoint of i, keypoint of j)) per pair with i < j.
@@ -175,6 +178,8 @@ def pair_matches(
             higher[min(i, j)].add(max(i, j))
     found = []
     for i, others in enumerate(higher):
+        if progress is not None:
+            progress.advance()
         order = sorted(others)
         if not order:
             continue
@@ -437,6 +442,7 @@ def build_track_points(
     poses: Sequence[Pose],
     cameras: Sequence[PinholeCamera],
     settings: TrackSettings,
+    progress: Progress | None = None,
 ) -> tuple[list[np.ndarray], list[list[int]]]:
     """The 3-D point of every map keypoint that a kept track holds.
 
@@ -445,6 +451,7 @@ def build_track_points(
         poses: their camera-to-world poses (held fixed).
         cameras: their cameras.
         settings: TrackSettings.
+        progress: advanced once per image while the pairs are matched.
 
     Returns:
         points: per image, [N_i, 3] float32, NaN rows where no track kept the
@@ -460,7 +467,7 @@ def build_track_points(
         settings.min_partner_angle_deg,
         settings.max_partner_angle_deg,
     )
-    matches = pair_matches(features, poses, cameras, partners, settings)
+    matches = pair_matches(features, poses, cameras, partners, settings, progress)
     tracks = tracks_of_matches([len(f) for f in features], matches)
     keypoints = [f.keypoints for f in features]
     return triangulate_tracks(tracks, keypoints, poses, cameras, settings), partners

@@ -50,7 +50,7 @@ def test_partners_within_recording_reaches_the_library_build(oracle, monkeypatch
     class ChosenError(Exception):
         pass
 
-    def stop(features, poses, cameras, partners, settings):
+    def stop(features, poses, cameras, partners, settings, *progress):
         raise ChosenError(partners)
 
     monkeypatch.setattr(tracks_module, "pair_matches", stop)
