@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from relocfw.core.errors import DataError
+from relocfw.core.image_headers import PNG_SIGNATURE, ImageHeader, read_header
 from relocfw.core.interfaces import crop_at, crop_side_and_span
 from relocfw.core.values import Crop
 
@@ -19,21 +20,33 @@ from relocfw.core.values import Crop
 # announcing more (70000 x 70000) is one DataError naming the file, not OpenCV's
 # cv2.error that names none.
 MAX_IMAGE_PIXELS = 2**30
+# The thinnest image a query may be (long side / short side: query.max_aspect). The
+# strip scales the short side up to the network input, so its memory and the crops a
+# sweep tries grow with this ratio: a 1 x 20000 strip is 6 GB. 10 passes every camera
+# frame (16:9 is 1.8), 2:1 equirectangular panoramas, 6:1 cube-map strips and phone
+# panoramas (about 4:1 to 9:1), and bounds a strip at 10 network inputs side by side.
+MAX_ASPECT = 10.0
 
 
-def read_rgb(path: Path) -> np.ndarray:
+def read_rgb(path: Path, max_aspect: float = MAX_ASPECT) -> np.ndarray:
     """RGB uint8 image (H x W x 3); grey images are expanded to three channels.
+
+    Args:
+        path: the image file.
+        max_aspect: the most its long side may be times its short side (checked on a
+            PNG or JPEG header before decoding, and on the pixels of every image).
 
     Raises:
         DataError: naming the file, when it is missing or cannot be decoded, when its
-            header announces more than MAX_IMAGE_PIXELS pixels, or when it is a
-            16-bit single-channel PNG or TIFF (a depth map, not a colour image).
+            header is damaged or announces more than MAX_IMAGE_PIXELS pixels, when it
+            is thinner than `max_aspect` allows, or when it is a 16-bit single-channel
+            PNG or TIFF (a depth map, not a colour image).
     """
     path = Path(path)
     if not path.is_file():
         raise DataError(f"image not found: {path}")
     data = np.fromfile(path, dtype=np.uint8)
-    check_announced_size(data, path)
+    check_header(data, str(path), max_aspect)
     if is_16_bit_grey_png(data):
         raise DataError(f"{path} is a 16-bit single-channel PNG (a depth map?), not a colour image")
     try:
@@ -44,60 +57,63 @@ def read_rgb(path: Path) -> np.ndarray:
             )
         image = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     except cv2.error as error:  # e.g. a size past OpenCV's limit in a format not parsed here
-        message = str(error).strip().splitlines()[-1]
-        raise DataError(f"cannot decode image {path}: {message}") from error
+        raise DataError(f"cannot decode image {path}: {cv2_message(error)}") from error
+    except MemoryError as error:
+        raise DataError(out_of_memory(str(path), "decoding it")) from error
     if image is None:
         raise DataError(f"cannot decode image (corrupt or not an image): {path}")
+    check_aspect(image.shape[1], image.shape[0], str(path), max_aspect)
     return np.ascontiguousarray(image[:, :, ::-1])
 
 
-def check_announced_size(data: np.ndarray, path: Path) -> None:
-    """Refuse, before decoding, an image whose header announces more than
-    MAX_IMAGE_PIXELS pixels (PNG and JPEG headers are read; others are not)."""
-    size = announced_size(data)
-    if size is not None and size[0] * size[1] > MAX_IMAGE_PIXELS:
+def cv2_message(error: cv2.error) -> str:
+    """The last line of OpenCV's message: the one that says what went wrong."""
+    return str(error).strip().splitlines()[-1]
+
+
+def out_of_memory(name: str, doing: str) -> str:
+    """The message for an allocation that failed, naming the limits that bound it."""
+    return (
+        f"{name}: out of memory {doing}; an image's size is bounded by its pixels "
+        f"({MAX_IMAGE_PIXELS}, serve.max_pixels for the service) and its shape "
+        "(query.max_aspect): scale the image down or lower the limits"
+    )
+
+
+def check_header(
+    data: np.ndarray | bytes, name: str, max_aspect: float = MAX_ASPECT
+) -> ImageHeader | None:
+    """A PNG or JPEG header, read and checked before decoding; None for other formats.
+
+    Raises:
+        DataError: naming `name`, for a damaged header, one announcing more than
+            MAX_IMAGE_PIXELS pixels, or an image thinner than `max_aspect` allows.
+    """
+    header = read_header(data, name)
+    if header is None:
+        return None
+    width, height = header.width, header.height
+    if width * height > MAX_IMAGE_PIXELS:
         raise DataError(
-            f"{path}: its header announces {size[0]} x {size[1]} pixels, more than the "
+            f"{name}: its header announces {width} x {height} pixels, more than the "
             f"{MAX_IMAGE_PIXELS} relocfw decodes (a corrupt header, or scale the image down)"
         )
+    check_aspect(width, height, name, max_aspect, "its header announces")
+    return header
 
 
-def announced_size(data: np.ndarray) -> tuple[int, int] | None:
-    """(width, height) that a PNG or JPEG header announces; None for other or short data."""
-    head = data[:26].tobytes()
-    if head[:8] == PNG_SIGNATURE and len(head) >= 24:
-        return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-    if head[:2] == b"\xff\xd8":
-        return jpeg_size(data.tobytes())
-    return None
-
-
-# JPEG start-of-frame markers (C0-CF less C4 DHT, C8 JPG, CC DAC) hold the frame size.
-JPEG_FRAME_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
-
-
-def jpeg_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) of a JPEG's first frame header, walking its marker segments."""
-    offset = 2
-    while offset + 9 <= len(data):
-        if data[offset] != 0xFF:
-            return None
-        marker = data[offset + 1]
-        if marker == 0xFF:  # fill byte before a marker
-            offset += 1
-            continue
-        if marker in JPEG_FRAME_MARKERS:
-            height = int.from_bytes(data[offset + 5 : offset + 7], "big")
-            width = int.from_bytes(data[offset + 7 : offset + 9], "big")
-            return width, height
-        if marker == 0xD8 or 0xD0 <= marker <= 0xD7:  # markers without a length
-            offset += 2
-            continue
-        offset += 2 + int.from_bytes(data[offset + 2 : offset + 4], "big")
-    return None
-
-
-PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+def check_aspect(
+    width: int, height: int, name: str, max_aspect: float = MAX_ASPECT, verb: str = "is"
+) -> None:
+    """Refuse an image whose long side is more than `max_aspect` times its short side
+    (query.max_aspect): its strip and its crop searches grow with that ratio."""
+    long, short = max(width, height), min(width, height)
+    if long > max_aspect * short:
+        raise DataError(
+            f"{name}: {verb} {width} x {height} pixels, its long side "
+            f"{long / max(short, 1):.4g} times its short side, more than "
+            f"query.max_aspect={max_aspect:g} allows (crop the image, or raise query.max_aspect)"
+        )
 
 
 def is_16_bit_grey_png(data: np.ndarray) -> bool:

@@ -1,0 +1,142 @@
+"""The size a PNG or JPEG header announces, read the way the decoders read it.
+
+One reader for every place relocfw decodes bytes from elsewhere (image files, bag
+messages, the service's request bodies), so a limit checked on the header is checked
+on the size the decoder will allocate. A reader that disagrees with the decoder is a
+way past the limit: a crafted file shows it one size and the decoder another.
+
+JPEG (ITU T.81, B.1.1): after SOI the header is a run of markers, each `FF` `xx`
+after any number of `FF` fill bytes. SOI, EOI, RST0-RST7 and TEM stand alone; every
+other marker starts a segment whose two-byte length counts itself. The frame size is
+in the first start-of-frame segment (SOF0-SOF15 less DHT, JPG and DAC). Bytes between
+segments that are not a marker are skipped, as libjpeg skips them (with a warning),
+so the frame header found is the one libjpeg decodes.
+
+PNG: libpng refuses a file whose first chunk is not a 13-byte IHDR, and a width or
+height of 0 or above 2^31 - 1 (png_get_uint_31).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from relocfw.core.errors import DataError
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+JPEG_START = b"\xff\xd8"
+# Markers without a length: SOI, RST0-RST7, TEM (EOI ends the header: handled apart).
+JPEG_STANDALONE = frozenset({0xD8, *range(0xD0, 0xD8), 0x01})
+JPEG_END_OF_IMAGE = 0xD9
+JPEG_START_OF_SCAN = 0xDA
+# Start-of-frame markers: C0-CF less C4 (DHT), C8 (JPG, reserved) and CC (DAC).
+JPEG_FRAME_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+# A frame header's fixed part: length (2), precision (1), height (2), width (2), Nf (1).
+JPEG_FRAME_FIXED = 8
+PNG_IHDR_LENGTH = 13
+PNG_LARGEST = 2**31 - 1  # png_get_uint_31's bound
+
+
+@dataclass(frozen=True)
+class ImageHeader:
+    """What an image header announces."""
+
+    format: str  # "png" or "jpeg"
+    width: int
+    height: int
+
+
+def read_header(data: bytes | np.ndarray, name: str) -> ImageHeader | None:
+    """The format and size a PNG or JPEG header announces; None for other formats
+    (and for empty data), whose headers are not read.
+
+    Args:
+        data: the encoded image, as bytes or a uint8 array.
+        name: how a refusal names the data (a file, a bag topic, the request body).
+
+    Raises:
+        DataError: naming `name`, for a PNG or JPEG header that is damaged or cut
+            short: the decoder would refuse it, or read it differently.
+    """
+    raw = data.tobytes() if isinstance(data, np.ndarray) else bytes(data)
+    if raw.startswith(PNG_SIGNATURE):
+        return png_header(raw, name)
+    if raw.startswith(JPEG_START):
+        return jpeg_header(raw, name)
+    return None
+
+
+def png_header(data: bytes, name: str) -> ImageHeader:
+    """The size in a PNG's IHDR, which must be its first chunk."""
+
+    def damaged(problem: str) -> DataError:
+        return DataError(f"{name}: damaged PNG header ({problem})")
+
+    start = len(PNG_SIGNATURE)
+    if len(data) < start + 8 + PNG_IHDR_LENGTH:
+        raise damaged("it ends before its IHDR chunk")
+    length = int.from_bytes(data[start : start + 4], "big")
+    if data[start + 4 : start + 8] != b"IHDR" or length != PNG_IHDR_LENGTH:
+        raise damaged("its first chunk is not a 13-byte IHDR")
+    fields = start + 8
+    width = int.from_bytes(data[fields : fields + 4], "big")
+    height = int.from_bytes(data[fields + 4 : fields + 8], "big")
+    for axis, value in (("width", width), ("height", height)):
+        if not 0 < value <= PNG_LARGEST:
+            raise damaged(f"its {axis} is {value}, outside 1 to {PNG_LARGEST}")
+    return ImageHeader("png", width, height)
+
+
+def jpeg_header(data: bytes, name: str) -> ImageHeader:
+    """The size in a JPEG's first frame header, its markers walked from SOI."""
+
+    def damaged(problem: str) -> DataError:
+        return DataError(f"{name}: damaged JPEG header ({problem})")
+
+    offset = len(JPEG_START)
+    while True:
+        found = next_jpeg_marker(data, offset)
+        if found is None:
+            raise damaged("the data ends before its frame header")
+        marker, offset = found  # offset: just after the marker
+        if marker in JPEG_STANDALONE:
+            continue
+        if marker == JPEG_END_OF_IMAGE:
+            raise damaged("the image ends before its frame header")
+        if marker == JPEG_START_OF_SCAN:
+            raise damaged("a scan starts before the frame header")
+        if offset + 2 > len(data):
+            raise damaged("the data ends before its frame header")
+        length = int.from_bytes(data[offset : offset + 2], "big")
+        if length < 2:
+            raise damaged(f"a segment length of {length}, below the 2 bytes of the length")
+        if offset + length > len(data):
+            raise damaged(f"a segment of {length} bytes at byte {offset} runs past the end")
+        if marker in JPEG_FRAME_MARKERS:
+            if length < JPEG_FRAME_FIXED:
+                raise damaged(f"a frame header of {length} bytes, too short for a size")
+            height = int.from_bytes(data[offset + 3 : offset + 5], "big")
+            width = int.from_bytes(data[offset + 5 : offset + 7], "big")
+            if width == 0 or height == 0:  # a height given later (DNL): not decoded
+                raise damaged(f"its frame header announces {width} x {height} pixels")
+            return ImageHeader("jpeg", width, height)
+        offset += length
+
+
+def next_jpeg_marker(data: bytes, offset: int) -> tuple[int, int] | None:
+    """(marker, offset just after it) of the next marker at or after `offset`; None
+    at the end of the data. Fill bytes (FF FF ...) before a marker are swallowed, and
+    other bytes (FF 00 too, a stuffed zero) skipped, as libjpeg's next_marker does."""
+    while True:
+        start = data.find(b"\xff", offset)
+        if start < 0:
+            return None
+        offset = start + 1
+        while offset < len(data) and data[offset] == 0xFF:
+            offset += 1
+        if offset >= len(data):
+            return None
+        if data[offset] != 0x00:
+            return data[offset], offset + 1
+        offset += 1
