@@ -9,6 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from omegaconf import DictConfig
 
+from relocfw.core.error_bounds import checked_coverage
 from relocfw.core.errors import ConfigError
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.data.frames import Frame
@@ -37,9 +38,9 @@ def calibrate_options(cfg: DictConfig) -> CalibrateOptions:
     (before any image is read or model trained, also when share is 0: a typo in a
     coverage is an error, not a silent default)."""
     calibrate = cfg.get("calibrate") or {}
-    coverage = float(calibrate.get("coverage", 0.9))
-    if not 0.0 < coverage < 1.0:
-        raise ConfigError(f"calibrate.coverage must be between 0 and 1, got {coverage}")
+    coverage = checked_coverage(
+        float(calibrate.get("coverage", 0.9)), "calibrate.coverage", ConfigError
+    )
     bins = integer_at_least("calibrate.bins", calibrate.get("bins", 3), 1)
     share = float(calibrate.get("share", 0.0) or 0.0)
     if share != 0.0:

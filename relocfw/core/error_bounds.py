@@ -50,6 +50,11 @@ SIGNALS = ("refiner confidence", "spread", "none")  # what ranks trust; stored a
 
 # The most bins a stored state may hold: a forged count must not allocate without end.
 MOST_BINS = 1000
+# The coverages a bound may be calibrated for or stored with. Below one half a "bound"
+# is exceeded by most answers, and a coverage near 0 asks for the 0th smallest error;
+# above 0.999 each bin needs over 999 validation answers for a finite bound.
+LEAST_COVERAGE = 0.5
+MOST_COVERAGE = 0.999
 # (n + 1) * coverage is a rational number that binary floats round: 10 * 0.9 may land
 # a hair above 9, and its ceiling would then ask for one more answer than the rule does.
 ROUNDING = 1e-9
@@ -61,16 +66,28 @@ def conformal_rank(count: int, coverage: float) -> int:
     return math.ceil((count + 1) * coverage - ROUNDING)
 
 
+def least_answers(coverage: float) -> int:
+    """The fewest answers that give a finite conformal bound at `coverage`:
+    count >= coverage / (1 - coverage)."""
+    return math.ceil(coverage / (1 - coverage) - ROUNDING)
+
+
 def answers_per_bin(coverage: float) -> int:
     """The fewest answers a bin is made with: enough for a finite conformal bound
-    (count >= coverage / (1 - coverage)), and never fewer than 20."""
-    return max(20, math.ceil(coverage / (1 - coverage) - ROUNDING))
+    (`least_answers`), and never fewer than 20."""
+    return max(20, least_answers(coverage))
+
+
+def supports(count: int, coverage: float) -> bool:
+    """Whether `count` answers can give a finite bound at `coverage`: its conformal
+    rank is one of them."""
+    return conformal_rank(count, coverage) <= count
 
 
 def conformal_bound(errors: np.ndarray, coverage: float) -> float:
     """The conformal_rank-th smallest of `errors`; +inf when that rank exceeds their
     number (too few answers to bound at this coverage, which is honest, not a guess)."""
-    rank = conformal_rank(len(errors), coverage)
+    rank = conformal_rank(len(errors), checked_coverage(coverage, "coverage", ConfigError))
     if rank > len(errors):
         return math.inf
     return float(np.partition(errors, rank - 1)[rank - 1])
@@ -140,7 +157,8 @@ def calibrate(
             (it counts, as the largest error).
         signal: [N] trust signal, higher = more trusted; NaN where an answer has none.
         untrusted: [N] whether each answer fell back.
-        coverage: the probability, in (0, 1), that a new answer's error is within its bound.
+        coverage: the probability, in LEAST_COVERAGE .. MOST_COVERAGE, that a new
+            answer's error is within its bound.
         bins: the most bins; fewer are made when each would hold under
             `answers_per_bin(coverage)` answers.
 
@@ -148,7 +166,7 @@ def calibrate(
         The bounds, grouped as the module's note says.
 
     Raises:
-        ConfigError: coverage outside (0, 1) or bins below 1.
+        ConfigError: coverage outside LEAST_COVERAGE .. MOST_COVERAGE or bins below 1.
         DataError: lengths differ, no answers, or an error is NaN or negative.
     """
     coverage, bins = checked_options(coverage, bins)
@@ -205,12 +223,25 @@ def bin_edges(ordered: np.ndarray, count: int, least: int) -> np.ndarray:
     return edges
 
 
-def checked_options(coverage: float, bins: int) -> tuple[float, int]:
-    """coverage in (0, 1) and bins >= 1, or a ConfigError naming the option."""
+def checked_coverage(
+    coverage: object, key: str, error: type[ConfigError] | type[DataError]
+) -> float:
+    """`coverage` as a float in LEAST_COVERAGE .. MOST_COVERAGE, or an `error` naming
+    `key` (a ConfigError for an option, a DataError for a stored value)."""
     if isinstance(coverage, bool) or not isinstance(coverage, (int, float, np.floating)):
-        raise ConfigError(f"calibrate.coverage must be a number in (0, 1), got {coverage!r}")
-    if not 0 < coverage < 1:
-        raise ConfigError(f"calibrate.coverage must be in (0, 1) (e.g. 0.9), got {coverage}")
+        raise error(f"{key} must be a number, got {coverage!r}")
+    if not LEAST_COVERAGE <= coverage <= MOST_COVERAGE:
+        raise error(
+            f"{key} must be between {LEAST_COVERAGE:g} and {MOST_COVERAGE:g} (e.g. 0.9), "
+            f"got {coverage}"
+        )
+    return float(coverage)
+
+
+def checked_options(coverage: float, bins: int) -> tuple[float, int]:
+    """coverage in LEAST_COVERAGE .. MOST_COVERAGE and bins >= 1, or a ConfigError
+    naming the option."""
+    coverage = checked_coverage(coverage, "calibrate.coverage", ConfigError)
     if isinstance(bins, bool) or not isinstance(bins, (int, np.integer)) or bins < 1:
         raise ConfigError(f"calibrate.bins must be a whole number >= 1, got {bins!r}")
     return float(coverage), int(bins)
@@ -287,8 +318,7 @@ class ErrorBounds:
         if not isinstance(state, Mapping):
             raise DataError(f"{label}: bounds state must be a mapping of tensors")
         coverage = float(_scalar(state, "bounds.coverage", torch.float64, label))
-        if not 0 < coverage < 1:
-            raise DataError(f"{label}: bounds.coverage must be in (0, 1), got {coverage}")
+        coverage = checked_coverage(coverage, f"{label}: bounds.coverage", DataError)
         code = int(_scalar(state, "bounds.signal", torch.int64, label))
         if not 0 <= code < len(SIGNALS):
             raise DataError(
@@ -298,7 +328,9 @@ class ErrorBounds:
         size = int(_scalar(state, "bounds.validation_size", torch.int64, label))
         if size < 1:
             raise DataError(f"{label}: bounds.validation_size must be >= 1, got {size}")
-        binned = {name: _binned_of(state, f"bounds.{name}.", label, size) for name in _ERRORS}
+        binned = {
+            name: _binned_of(state, f"bounds.{name}.", label, size, coverage) for name in _ERRORS
+        }
         return cls(
             coverage=coverage,
             signal=SIGNALS[code],
@@ -369,9 +401,11 @@ def _scalar(
 
 
 def _binned_of(
-    state: Mapping[str, torch.Tensor], prefix: str, label: str, size: int
+    state: Mapping[str, torch.Tensor], prefix: str, label: str, size: int, coverage: float
 ) -> BinnedBound:
-    """One error's BinnedBound from the tensors under `prefix`, each checked."""
+    """One error's BinnedBound from the tensors under `prefix`, each checked: a finite
+    bound only where its group's answers can give one at `coverage` (calibration
+    gives inf where they cannot, so a finite one there is a forged claim)."""
     keys = {name: prefix + name for name in ("edges", "bounds", "counts")}
     bounds = _array(state, keys["bounds"], torch.float64, label)
     if bounds.ndim != 1 or not 1 <= len(bounds) <= MOST_BINS:
@@ -414,4 +448,15 @@ def _binned_of(
             f"{label}: {keys['counts']} ({total}) and {prefix}untrusted_count "
             f"({untrusted_count}) must add up to bounds.validation_size ({size})"
         )
+    groups = [
+        (f"{keys['bounds']}[{b}]", float(bounds[b]), int(counts[b])) for b in range(len(counts))
+    ]
+    groups.append((f"{prefix}untrusted_bound", untrusted_bound, untrusted_count))
+    for key, bound, count in groups:
+        if math.isfinite(bound) and not supports(count, coverage):
+            raise DataError(
+                f"{label}: {key} is {bound:g} from {count} answer{'s' if count != 1 else ''}; "
+                f"at bounds.coverage {coverage:g} a finite bound needs at least "
+                f"{least_answers(coverage)} (calibration gives inf)"
+            )
     return BinnedBound(edges, bounds, counts, untrusted_bound, untrusted_count)

@@ -99,7 +99,10 @@ def test_bounds_are_calibrated_stored_and_written_by_localize(tmp_path):
         ),
         ("calibrate.share=0.8", "calibrate.share must be above 0 and at most 0.5, got 0.8"),
         ("calibrate.share=-0.1", "calibrate.share must be above 0 and at most 0.5"),
-        ("calibrate.coverage=1.5", "calibrate.coverage must be between 0 and 1, got 1.5"),
+        (
+            "calibrate.coverage=1.5",
+            "calibrate.coverage must be between 0.5 and 0.999 (e.g. 0.9), got 1.5",
+        ),
         ("calibrate.bins=0", "calibrate.bins must be at least 1, got 0"),
     ],
 )

@@ -317,3 +317,54 @@ def test_describe_is_one_line_with_the_span_of_bounds():
     low, high = f"{position.bounds[-1]:.3g}", f"{position.bounds[0]:.3g}"
     assert f"position {low}-{high} m" in line
     assert "fell back or no signal" in line
+
+
+# --- bounds that their answers cannot support -------------------------------------
+
+
+def one_answer_bounds(bound: float, coverage: float = 0.99, untrusted: bool = False) -> dict:
+    """A state claiming `bound` from a single validation answer (in the one bin, or in
+    the untrusted group)."""
+    one = BinnedBound(
+        edges=np.zeros(0),
+        bounds=np.array([math.inf if untrusted else bound]),
+        counts=np.array([0 if untrusted else 1]),
+        untrusted_bound=bound if untrusted else math.inf,
+        untrusted_count=1 if untrusted else 0,
+    )
+    return ErrorBounds(coverage, "none", one, one, validation_size=1).state()
+
+
+@pytest.mark.parametrize(
+    ("untrusted", "key"),
+    [(False, "bounds.position.bounds"), (True, "bounds.position.untrusted_bound")],
+    ids=["bin", "untrusted_group"],
+)
+def test_a_finite_bound_from_too_few_answers_is_refused_naming_the_key(untrusted, key):
+    # One answer cannot bound a new one at 99%: calibration gives inf (rank 2 of 1).
+    state = one_answer_bounds(0.001, untrusted=untrusted)
+    with pytest.raises(DataError, match=rf"^model\.pt: {key.replace('.', '[.]')}\b.*1 answer"):
+        ErrorBounds.from_state(state, "model.pt")
+    # inf is what calibration gives there, and it loads.
+    honest = ErrorBounds.from_state(one_answer_bounds(math.inf, untrusted=untrusted), "model.pt")
+    assert honest.position.bound(NAN, untrusted) == math.inf
+
+
+def test_every_calibrated_bound_passes_the_rank_check():
+    rng = np.random.default_rng(3)
+    for coverage in (0.5, 0.8, 0.9, 0.95):
+        errors, signal = heteroscedastic(rng, 70)
+        fell_back = rng.uniform(size=70) < 0.3
+        binned = calibrate(errors, signal, fell_back, coverage=coverage, bins=3)
+        state = ErrorBounds(coverage, "spread", binned, binned, 70).state()
+        assert same_binned(ErrorBounds.from_state(state, "m").position, binned)
+
+
+@pytest.mark.parametrize("coverage", [1e-12, 0.2, 0.9999999])
+def test_a_coverage_outside_the_sane_range_is_refused(coverage):
+    with pytest.raises(ConfigError, match="calibrate.coverage"):
+        calibrate(np.ones(30), np.zeros(30), np.zeros(30, dtype=bool), coverage=coverage)
+    state = make_bounds().state()
+    state["bounds.coverage"] = torch.tensor(coverage, dtype=torch.float64)
+    with pytest.raises(DataError, match=r"^model\.pt: bounds[.]coverage must be"):
+        ErrorBounds.from_state(state, "model.pt")

@@ -134,7 +134,9 @@ def config(**calibrate):
 
 
 def test_calibrate_options_are_checked_even_when_calibration_is_off():
-    with pytest.raises(ConfigError, match="calibrate.coverage must be between 0 and 1, got 9"):
+    with pytest.raises(
+        ConfigError, match=r"calibrate.coverage must be between 0.5 and 0.999 \(e.g. 0.9\), got 9"
+    ):
         calibrate_options(config(coverage=9))
     with pytest.raises(ConfigError, match="calibrate.bins must be at least 1"):
         calibrate_options(config(bins=0))
