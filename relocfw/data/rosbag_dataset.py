@@ -41,8 +41,11 @@ UNITS_NOTE = "positions are in the bag's poses' own units (dataset.metric=false)
 NAMED_UNMATCHED = 5
 
 
-def time_ranges(value: object, key: str) -> list[tuple[float, float]]:
-    """`[[t0, t1], ...]` seconds from the bag start as pairs, or a ConfigError naming key."""
+def time_ranges(value: object, key: str) -> list[tuple[float, float]] | None:
+    """`[[t0, t1], ...]` seconds from the bag start as pairs, None where the key is not
+    set (null), or a ConfigError naming key."""
+    if value is None:
+        return None
     pairs: list[tuple[float, float]] = []
     try:
         for pair in value or []:  # type: ignore[union-attr]
@@ -91,8 +94,10 @@ class RosbagDataset:
         bag: the `.bag` file, or the ROS 2 bag folder, `.db3` or `.mcap`.
         image_topic: the colour images.
         train_time: [[t0, t1], ...] seconds from the bag's start (t0 <= t < t1): the
-            map's images.
-        test_time: the same for the query images; must not overlap train_time.
+            map's images; None: every image outside test_time.
+        test_time: the same for the query images; must not overlap train_time. None:
+            no test frames (the whole recording, or train_time, is the map, and a run
+            scores nothing).
         pose_topic: PoseStamped, Odometry or tf2_msgs/TFMessage (/tf) topic.
         tf_parent, tf_child: the frames of the /tf transform taken as the camera pose.
         trajectory: a TUM trajectory file (relative to the bag's folder) instead.
@@ -145,8 +150,11 @@ class RosbagDataset:
             "train": time_ranges(train_time, "dataset.train_time"),
             "test": time_ranges(test_time, "dataset.test_time"),
         }
-        if overlap(self.ranges["train"], self.ranges["test"]):
+        train, test = self.ranges["train"], self.ranges["test"]
+        if train is not None and test is not None and overlap(train, test):
             raise ConfigError("dataset.train_time and dataset.test_time overlap")
+        # No test_time: no test frames by design, not an empty split by mistake.
+        self.has_test_split = test is not None
         self.intrinsics = intrinsics_option(intrinsics)
         self.bag = Path(bag).expanduser()
         self.trajectory = self.bag.parent / trajectory if trajectory else None
@@ -161,13 +169,26 @@ class RosbagDataset:
         self.posed: tuple[list[Frame], np.ndarray] | None = None
 
     def frames(self, split: str) -> list[Frame]:
+        """The split's posed frames: those in its time ranges; for "train" without
+        train_time, every one outside test_time; for "test" without test_time, none."""
+        ranges = self.ranges[split]
+        if split == "test" and ranges is None:
+            return []
         frames, seconds = self.posed_frames()
-        inside = within(seconds, self.ranges[split])
+        if ranges is None:
+            inside = ~within(seconds, self.ranges["test"] or [])
+        else:
+            inside = within(seconds, ranges)
         return [frame for frame, keep in zip(frames, inside, strict=True) if keep]
 
     def split_source(self, split: str) -> str:
         """What picks the split's frames, for messages: its time ranges in the bag."""
-        return f"dataset.{split}_time={[list(r) for r in self.ranges[split]]} in {self.bag}"
+        ranges = self.ranges[split]
+        if ranges is None and split == "test":
+            return "dataset.test_time is not set"
+        if ranges is None:
+            return f"dataset.train_time is not set (every image of {self.bag} outside test_time)"
+        return f"dataset.{split}_time={[list(r) for r in ranges]} in {self.bag}"
 
     def posed_frames(self) -> tuple[list[Frame], np.ndarray]:
         """Every image with a pose, and its seconds from the bag's start (read once)."""

@@ -358,6 +358,21 @@ def test_bad_options_are_one_config_error_naming_the_key(tmp_path, options, key)
         rosbag_dataset(tmp_path / "x.bag", tmp_path, pose_topic="/pose", **options)
 
 
+def test_without_test_time_every_posed_image_is_the_map_and_none_is_scored(tmp_path):
+    path = bag_path(tmp_path, True)
+    write_recording(path, True)
+    dataset = rosbag_dataset(path, tmp_path, pose_topic="/pose", train_time=None, test_time=None)
+    assert not dataset.has_test_split
+    assert len(dataset.frames("train")) == 8 and dataset.frames("test") == []
+    assert "dataset.test_time is not set" in dataset.split_source("test")
+    # Without train_time the map is every posed image outside the test ranges.
+    rest = rosbag_dataset(path, tmp_path, pose_topic="/pose", train_time=None)
+    assert rest.has_test_split
+    tenths = [round(float(f.name.split("/")[-1]) * 10) % 100 for f in rest.frames("train")]
+    assert tenths == [0, 1, 2, 3, 5]
+    assert len(rest.frames("test")) == 3
+
+
 def test_a_connection_with_a_non_standard_type_hash_is_refused(tmp_path):
     """The bag's own message definitions are never compiled: a type recorded with
     another definition than the standard one is refused, not decoded by guess."""
@@ -441,6 +456,34 @@ def test_a_map_from_a_bag_through_the_command_line(tmp_path):
     assert finished.returncode == 0, finished.stderr
     assert (tmp_path / "out" / "model.relocfw").is_file()
     assert "1 image on /cam/image with no pose" in finished.stderr
+
+
+def test_a_bag_without_time_ranges_is_all_map_and_the_run_scores_nothing(tmp_path):
+    """No dataset.train_time nor test_time: every posed image is the map; the run
+    writes the model file and says in one line that nothing was scored."""
+    from tests.cli_runs import relocfw_here
+    from tests.conftest import TINY_MODEL
+
+    write_recording(tmp_path / "run.bag", True)
+    finished = relocfw_here(
+        [
+            "dataset=rosbag",
+            "dataset.bag=run.bag",
+            "dataset.image_topic=/cam/image",
+            "dataset.pose_topic=/pose",
+            "hydra.run.dir=out",
+            *TINY_MODEL,
+            "k=2",
+        ],
+        tmp_path,
+    )
+    assert finished.returncode == 0, finished.stderr
+    assert (tmp_path / "out" / "model.relocfw").is_file()
+    assert not (tmp_path / "out" / "results.csv").exists()
+    said = [line for line in finished.stdout.splitlines() if "scored" in line]
+    assert said == [
+        "nothing was scored: no test frames (dataset.test_time is not set); the map holds 8 images"
+    ]
 
 
 def test_under_skip_an_undecodable_image_is_listed_again_when_the_extraction_is_reused(

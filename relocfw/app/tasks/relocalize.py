@@ -13,7 +13,7 @@ from omegaconf import DictConfig
 from relocfw.app.config_schema import Baseline, name_of
 from relocfw.app.engines import keep_graphs_beside, on_engine
 from relocfw.app.methods import centre_label, dataset_settings, scene_name
-from relocfw.app.results import Split, run_method, write_results
+from relocfw.app.results import Split, fit_method, run_method, write_results
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.tasks.train import trained
 from relocfw.app.validation_block import held_out_count
@@ -75,26 +75,45 @@ def relocalize(
     return results
 
 
+def test_split(dataset: object, quiet: bool) -> Split | None:
+    """The test split; None where the dataset holds no test frames by design
+    (dataset=rosbag without dataset.test_time: the recording is all map)."""
+    if not getattr(dataset, "has_test_split", True):
+        return None
+    return load_split(dataset, "test", quiet)
+
+
+def nothing_scored(dataset: object, map_images: int) -> str:
+    """The one line a run without test frames prints in place of the results table."""
+    describe = getattr(dataset, "split_source", None)
+    why = describe("test") if describe is not None else "the dataset has none"
+    return f"nothing was scored: no test frames ({why}); the map holds {map_images} images"
+
+
 def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     done = trained(cfg, device, world, map_size=True)
     choices = HydraConfig.get().runtime.choices
     quiet = bool(cfg.quiet)
-    test = load_split(done.dataset, "test", quiet)
+    test = test_split(done.dataset, quiet)
     write_skipped(done.dataset, done.run_dir)
     method = done.method
     relocalizer = on_engine(cfg, method.relocalizer(device), done.checkpoint, device, done.train[1])
-    relocalize(
-        relocalizer,
-        method.label,
-        done.train,
-        test,
-        done.run_dir,
-        baselines=[name_of(b) for b in cfg.relocalize.baselines],
-        centre_label=centre_label(cfg, choices),
-        quiet=quiet,
-        unit=unit_of(done.dataset),
-        calibration=done.calibration,
-    )
+    if test is None:
+        fit_method(method.label, relocalizer, done.train, quiet, done.calibration)
+        print(nothing_scored(done.dataset, len(done.train[0])))
+    else:
+        relocalize(
+            relocalizer,
+            method.label,
+            done.train,
+            test,
+            done.run_dir,
+            baselines=[name_of(b) for b in cfg.relocalize.baselines],
+            centre_label=centre_label(cfg, choices),
+            quiet=quiet,
+            unit=unit_of(done.dataset),
+            calibration=done.calibration,
+        )
     metadata = {
         "method": method.label,
         "dataset": choices["dataset"],
