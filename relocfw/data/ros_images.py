@@ -2,7 +2,10 @@
 
 Plain functions of a decoded message's fields (no rosbags import), so a message from
 any bag reader decodes the same way. Every size is checked against the buffer before
-it is used: a bag is data from someone else.
+it is used, and a CompressedImage's header is read by the reader files and the
+service use (relocfw.core.imaging.check_header) before it is decoded: a bag is data
+from someone else, and one bad message is one DataError naming its topic and stamp,
+which on_error=skip leaves out.
 """
 
 from __future__ import annotations
@@ -13,6 +16,7 @@ import cv2
 import numpy as np
 
 from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.imaging import check_header, cv2_message, out_of_memory
 
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 # sensor_msgs/Image encodings read as colour: channels of 8 bits each.
@@ -41,16 +45,17 @@ def raw_pixels(message: Any, channels: int, dtype: np.dtype, topic: str) -> np.n
 def colour_image(message: Any, msgtype: str, topic: str) -> np.ndarray:
     """The H x W x 3 uint8 RGB pixels of an Image or CompressedImage message.
 
+    Its shape is not checked here: a query's (query.max_aspect) is checked where the
+    configured limit is known, as for any frame.
+
     Raises:
         ConfigError: naming the topic when it holds depth (16UC1, 32FC1): a wrong topic.
-        DataError: naming the topic when the message cannot be decoded.
+        DataError: naming the topic and the message's stamp when it cannot be decoded
+            (a damaged header, one announcing more than imaging.MAX_IMAGE_PIXELS,
+            OpenCV's refusal or an allocation that fails).
     """
     if msgtype == COMPRESSED_IMAGE:
-        data = np.asarray(message.data, dtype=np.uint8)
-        decoded = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-        if decoded is None:
-            raise DataError(f"{topic}: compressed image ({message.format}) does not decode")
-        return np.ascontiguousarray(decoded[:, :, ::-1])
+        return compressed_colour(message, f"{topic} (stamp {stamp_text(message)})")
     encoding = str(message.encoding)
     if encoding in DEPTH_ENCODINGS:
         raise ConfigError(
@@ -68,6 +73,32 @@ def colour_image(message: Any, msgtype: str, topic: str) -> np.ndarray:
     elif encoding.startswith("bgr"):
         pixels = pixels[:, :, 2::-1]
     return np.ascontiguousarray(pixels[:, :, :3])
+
+
+def compressed_colour(message: Any, name: str) -> np.ndarray:
+    """A CompressedImage's RGB pixels; refusals name the message as `name`."""
+    data = np.asarray(message.data, dtype=np.uint8)
+    what = f"compressed image ({message.format})"
+    # No aspect limit here (infinite): see colour_image.
+    check_header(data, f"{name}: {what}", max_aspect=float("inf"))
+    try:
+        decoded = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
+    except cv2.error as error:  # a format whose header is not read (OpenCV's own limit)
+        raise DataError(f"{name}: {what} does not decode: {cv2_message(error)}") from error
+    except MemoryError as error:
+        raise DataError(out_of_memory(f"{name}: {what}", "decoding it")) from error
+    if decoded is None:
+        raise DataError(f"{name}: {what} does not decode")
+    return np.ascontiguousarray(decoded[:, :, ::-1])
+
+
+def stamp_text(message: Any) -> str:
+    """The message header's stamp as seconds.nanoseconds ("unknown" without one)."""
+    stamp = getattr(getattr(message, "header", None), "stamp", None)
+    try:
+        return f"{int(stamp.sec)}.{int(stamp.nanosec):09d}"
+    except (AttributeError, TypeError, ValueError):
+        return "unknown"
 
 
 def depth_image(message: Any, topic: str) -> np.ndarray:
