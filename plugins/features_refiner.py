@@ -82,7 +82,7 @@ import torch
 
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
-from relocfw.core.options import integer_at_least, positive_number
+from relocfw.core.options import positive_number
 from relocfw.core.refinement import MapImage, PoseRefiner, Refined, RefineQuery
 from relocfw.core.sensor_poses import (
     colour_pose,
@@ -131,6 +131,7 @@ from relocfw.structure.refiner_state import (
     checked_choice,
     checked_keyframes_choice,
     checked_min_iterations,
+    checked_size,
     options_state,
     stored_keyframe_descriptors,
     stored_options,
@@ -221,11 +222,13 @@ class FeaturesRefiner(PoseRefiner):
             raise ConfigError(f"refine.structure must be one of {choices}, got {structure!r}")
         self.structure_source = structure
         self.keyframes = checked_keyframes_choice(keyframes)
-        self.count = integer_at_least("refine.count", count, 1)
-        self.max_features = integer_at_least("refine.max_features", max_features, 8)
+        self.count = checked_size("count", count, STATE_INTEGERS["count"])
+        self.max_features = checked_size(
+            "max_features", max_features, STATE_INTEGERS["max_features"]
+        )
         self.ratio = positive_number("refine.ratio", ratio, most=1.0)
-        self.max_error_px = positive_number("refine.max_error_px", max_error_px)
-        self.min_inliers = integer_at_least("refine.min_inliers", min_inliers, 4)
+        self.max_error_px = checked_size("max_error_px", max_error_px)
+        self.min_inliers = checked_size("min_inliers", min_inliers, STATE_INTEGERS["min_inliers"])
         self.cache_dir = None if cache_dir is None else Path(cache_dir).expanduser()
         self.quiet = bool(quiet)
         if not isinstance(metric, bool):

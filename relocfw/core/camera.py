@@ -20,6 +20,52 @@ import numpy as np
 from relocfw.core.arrays import point_rows
 from relocfw.core.errors import ConfigError
 
+# What a stored camera (a map's, a model file's) may hold: no real image is wider or
+# taller than MOST_CAMERA_PIXELS, no lens has a focal length above MOST_FOCAL_PIXELS
+# (a 1000 mm lens on 1 um pixels), and a principal point lies near its image (within
+# one image size of it: a calibrated image's is inside it). A stored camera beyond
+# these is refused on loading, naming the file and the key, instead of failing every
+# query (cx = 1e300) or being taken for the query's fault (width = 1e15).
+MOST_CAMERA_PIXELS = 100_000
+MOST_FOCAL_PIXELS = 1_000_000
+CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height")
+
+
+def implausible_camera_keys(rows: np.ndarray) -> dict[str, np.ndarray]:
+    """For each of CAMERA_KEYS, which of the [M, 6] rows (fx, fy, cx, cy, width,
+    height) hold an implausible value there (see MOST_CAMERA_PIXELS); vectorised, as a
+    building's map holds 10^5 cameras."""
+    rows = np.asarray(rows, dtype=np.float64).reshape(-1, 6)
+    # Comparisons with NaN are False, so every rule is written as "is good", negated.
+    with np.errstate(invalid="ignore", over="ignore"):
+        sizes = rows[:, 4:]
+        good_size = (sizes >= 1) & (sizes <= MOST_CAMERA_PIXELS) & (sizes == np.floor(sizes))
+        good_focal = (rows[:, :2] > 0) & (rows[:, :2] <= MOST_FOCAL_PIXELS)
+        centre = rows[:, 2:4]
+        good_centre = (centre >= -sizes) & (centre <= 2 * sizes) & np.isfinite(centre)
+    good = np.concatenate([good_focal, good_centre, good_size], axis=1)
+    return {key: ~good[:, column] for column, key in enumerate(CAMERA_KEYS)}
+
+
+def camera_fault(rows: np.ndarray) -> tuple[int, str] | None:
+    """The first implausible camera of [M, 6] rows and what is wrong with it (naming the
+    key), or None when every row is a plausible camera."""
+    faults = implausible_camera_keys(rows)
+    bad = np.logical_or.reduce(list(faults.values()))
+    if not bad.any():
+        return None
+    number = int(np.flatnonzero(bad)[0])
+    key = next(key for key in CAMERA_KEYS if faults[key][number])
+    value = float(np.asarray(rows, dtype=np.float64).reshape(-1, 6)[number, CAMERA_KEYS.index(key)])
+    if key in ("fx", "fy"):
+        rule = f"a focal length above 0 and at most {MOST_FOCAL_PIXELS:g} px"
+    elif key in ("width", "height"):
+        rule = f"a whole number of pixels from 1 to {MOST_CAMERA_PIXELS:g}"
+    else:
+        size = "width" if key == "cx" else "height"
+        rule = f"within one {size} of the image (-{size} to 2 x {size})"
+    return number, f"{key} {value:g} must be {rule}"
+
 
 def positive_size(name: str, value: object) -> int:
     """`value` as a positive int (bools and fractions refused), or a ConfigError naming it."""

@@ -64,7 +64,7 @@ from pathlib import Path
 
 import numpy as np
 
-from relocfw.core.camera import PinholeCamera
+from relocfw.core.camera import PinholeCamera, camera_fault
 from relocfw.core.errors import DataError
 from relocfw.core.geometry import quaternion_to_matrix
 from relocfw.core.values import Pose
@@ -408,18 +408,13 @@ def check_arrays(
     if not np.isfinite(poses).all() or (np.abs(norms - 1) > QUATERNION_TOLERANCE).any():
         raise DataError(f"{where('poses')}: a pose is not finite or has no unit quaternion")
     cameras = np.array(arrays["cameras"])
-    # Vectorised (a building has 10^5 cameras): PinholeCamera's own checks, at once.
-    sizes = cameras[:, 4:]
-    good = (
-        np.isfinite(cameras).all(axis=1)
-        & (cameras[:, :2] > 0).all(axis=1)
-        & (sizes >= 1).all(axis=1)
-        & (sizes == np.floor(sizes)).all(axis=1)
-    )
-    if not good.all():
-        number = int(np.flatnonzero(~good)[0])
+    # Vectorised (a building has 10^5 cameras): PinholeCamera's own checks and a
+    # plausible size, focal length and principal point (relocfw.core.camera), at once.
+    fault = camera_fault(cameras)
+    if fault is not None:
+        number, why = fault
         raise DataError(
-            f"{where('cameras')}: camera {number} is not a camera "
+            f"{where('cameras')}: camera {number} is not a camera: {why} "
             f"(fx, fy, cx, cy, width, height = {cameras[number].tolist()})"
         )
     # The small arrays in memory from here on: mapped ones would read the disk per image.

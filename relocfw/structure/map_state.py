@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from relocfw.core.camera import PinholeCamera
+from relocfw.core.camera import PinholeCamera, camera_fault
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.values import Pose
 from relocfw.structure.features import SIFT_DIMENSIONS, LocalFeatures
@@ -177,6 +177,9 @@ def camera_of_row(row: np.ndarray, number: int, label: str) -> PinholeCamera:
     fx, fy, cx, cy, width, height = row.tolist()
     if not (width == int(width) and height == int(height)):
         raise DataError(f"{label}: cameras[{number}] has a size of {width} x {height} pixels")
+    fault = camera_fault(row)
+    if fault is not None:
+        raise DataError(f"{label}: cameras[{number}]: {fault[1]}")
     try:
         return PinholeCamera(fx, fy, cx, cy, int(width), int(height))
     except ConfigError as error:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from relocfw.core.camera import MOST_CAMERA_PIXELS
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.standardise import ZScore
@@ -45,6 +46,19 @@ STATE_CHOICES = {
 # The integer options a state keeps, with their least values, and the numbers.
 STATE_INTEGERS = {"count": 1, "max_features": 8, "min_inliers": 4, "ransac_min_iterations": 1}
 STATE_NUMBERS = ("ratio", "max_error_px", "image_scale")
+# Upper bounds of the size-like options, far above any use: a model file is data from
+# anyone, and a forged size must be refused on loading, not reach OpenCV (SIFT with
+# 2**40 features raises at every query) or a loop. An image has at most
+# MOST_CAMERA_PIXELS a side, so neither a keypoint count nor an inlier count nor a
+# reprojection bound above these means anything.
+MOST_FEATURES = 100_000
+MOST_KEYFRAMES = 1000
+MOST_SIZES = {
+    "count": MOST_KEYFRAMES,
+    "max_features": MOST_FEATURES,
+    "min_inliers": MOST_FEATURES,
+    "max_error_px": float(MOST_CAMERA_PIXELS),
+}
 # Options kept as 0 / 1.
 STATE_FLAGS = ("match_points_only",)
 STATE_LABEL = "refine=features state"
@@ -59,6 +73,16 @@ def checked_min_iterations(value: object) -> int:
             f"(PoseLib's most rounds), got {rounds}"
         )
     return rounds
+
+
+def checked_size(key: str, value: object, least: int | None = None) -> int | float:
+    """refine.<key> (a MOST_SIZES key) within its bounds, or a ConfigError naming it:
+    an integer >= `least`, or (least None) a number above 0; at most MOST_SIZES[key]."""
+    name = f"refine.{key}"
+    number = positive_number(name, value) if least is None else integer_at_least(name, value, least)
+    if number > MOST_SIZES[key]:
+        raise ConfigError(f"{name} must be at most {MOST_SIZES[key]:g}, got {value!r}")
+    return number
 
 
 def checked_keyframes_choice(keyframes: object) -> str:
@@ -106,16 +130,17 @@ def stored_options(state: dict[str, torch.Tensor]) -> dict:
         for key in STATE_INTEGERS:
             if key in state:
                 value = int(checked_tensor(state, key, torch.int64, STATE_LABEL))
-                options[key] = integer_at_least(f"refine.{key}", value, STATE_INTEGERS[key])
                 if key == "ransac_min_iterations":
                     options[key] = checked_min_iterations(value)
+                else:
+                    options[key] = checked_size(key, value, STATE_INTEGERS[key])
         for key in STATE_NUMBERS:
             if key in state:
                 value = float(checked_tensor(state, key, torch.float64, STATE_LABEL))
-                at_most_one = key in ("ratio", "image_scale")
-                options[key] = positive_number(
-                    f"refine.{key}", value, **({"most": 1.0} if at_most_one else {})
-                )
+                if key in MOST_SIZES:
+                    options[key] = checked_size(key, value)
+                else:  # ratio and image_scale: shares, at most 1
+                    options[key] = positive_number(f"refine.{key}", value, most=1.0)
         for key in STATE_FLAGS:
             if key in state:
                 flag = int(checked_tensor(state, key, torch.int64, STATE_LABEL))
