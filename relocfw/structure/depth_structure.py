@@ -3,6 +3,7 @@ registered into the colour image where the view has a depth camera."""
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Sequence
 
 import numpy as np
@@ -10,7 +11,7 @@ import numpy as np
 from relocfw.core.errors import DataError
 from relocfw.core.options import integer_at_least
 from relocfw.core.progress import Progress
-from relocfw.data.depth import check_depth_range, read_depth
+from relocfw.data.depth import PLAUSIBLE_MEDIAN_DEPTH_M, check_depth_range, read_depth
 from relocfw.structure.features import checked_image_scale, extract_rootsift
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
@@ -35,16 +36,29 @@ def depth_of_view(view: MapView) -> tuple[np.ndarray | None, str]:
     size is not its depth camera's, or (without a depth camera) whose aspect ratio
     differs from the image's, or whose median depth is implausible in metres
     (relocfw.data.depth.check_depth_range: a wrong depth_units_per_metre), is a
-    DataError, since every view of the map would be lifted wrongly.
+    DataError. (build_from_depth judges the scale over the whole map instead.)
     """
+    depth, reason = raw_depth(view)
+    if depth is None:
+        return None, reason
+    check_depth_range(depth, view.depth_path, view.depth_units_per_metre)
+    return in_image_pixels(view, depth), ""
+
+
+def raw_depth(view: MapView) -> tuple[np.ndarray | None, str]:
+    """The view's depth map in metres as its file holds it, or (None, why not): no
+    depth_path, or a missing, unreadable or corrupt file (read_depth's message)."""
     if view.depth_path is None:
         return None, "no depth map (depth_path is None)"
     try:
-        depth = read_depth(view.depth_path, None, view.depth_units_per_metre)
+        return read_depth(view.depth_path, None, view.depth_units_per_metre), ""
     except DataError as error:
         return None, str(error)
-    # Raised, not skipped: a wrong scale is the dataset's, and every view has it.
-    check_depth_range(depth, view.depth_path, view.depth_units_per_metre)
+
+
+def in_image_pixels(view: MapView, depth: np.ndarray) -> np.ndarray:
+    """A depth map of the view in its image's pixels: registered from its depth
+    camera, or as it is; a DataError naming the file when its size does not fit."""
     depth_height, depth_width = depth.shape
     if view.depth_camera is not None:
         sensor = view.depth_camera
@@ -53,7 +67,7 @@ def depth_of_view(view: MapView) -> tuple[np.ndarray | None, str]:
                 f"{view.depth_path}: depth map is {depth_width}x{depth_height} but the depth "
                 f"camera of {view.name!r} is {sensor.width}x{sensor.height}"
             )
-        return register_depth(depth, sensor, view.camera, view.depth_to_colour), ""
+        return register_depth(depth, sensor, view.camera, view.depth_to_colour)
     # The depth map's height if it were scaled to the image's width.
     scaled_height = depth_height * view.camera.width / depth_width
     if abs(scaled_height - view.camera.height) > ASPECT_TOLERANCE_PX:
@@ -63,7 +77,80 @@ def depth_of_view(view: MapView) -> tuple[np.ndarray | None, str]:
             "another size must have the image's aspect ratio (it is taken to cover the "
             "same field of view)"
         )
-    return depth, ""
+    return depth
+
+
+def median_depth(depth: np.ndarray) -> float | None:
+    """The median of a depth map's valid readings in metres; None without any."""
+    values = np.asarray(depth, dtype=np.float64)
+    valid = values[np.isfinite(values) & (values > 0)]
+    return float(np.median(valid)) if valid.size else None
+
+
+class DepthScale:
+    """The depth scale judged over the map, not per frame.
+
+    A wrong depth_units_per_metre puts every frame's median far outside
+    PLAUSIBLE_MEDIAN_DEPTH_M; one frame of a camera facing a wall (a median of a few
+    cm) does not. So the median of the frames' medians decides: outside the range,
+    the map's depth is at a wrong scale and the build stops (as soon as more than half
+    the map's frames lie on one side, which settles that median); a single frame
+    outside it only loses its depth, with one note naming it.
+    """
+
+    def __init__(self, frames: int) -> None:
+        self.frames = frames
+        self.medians: list[float] = []
+        self.low: list[MapView] = []  # frames below the range, in order
+        self.high: list[MapView] = []
+
+    def plausible(self, view: MapView, depth: np.ndarray) -> bool:
+        """Record the frame's median; whether its depth is plausible in metres.
+
+        Raises:
+            DataError: once the map's median depth is settled outside the range.
+        """
+        median = median_depth(depth)
+        if median is None:
+            return True  # no reading at all: the build reports that view as skipped
+        self.medians.append(median)
+        low, high = PLAUSIBLE_MEDIAN_DEPTH_M
+        side = self.low if median < low else self.high if median > high else None
+        if side is None:
+            return True
+        side.append(view)
+        if len(side) > self.frames / 2:
+            self.refuse()
+        return False
+
+    def finish(self) -> None:
+        """Raises the DataError when the map's median depth is implausible."""
+        low, high = PLAUSIBLE_MEDIAN_DEPTH_M
+        if self.medians and not low <= float(np.median(self.medians)) <= high:
+            self.refuse()
+
+    def refuse(self) -> None:
+        median = float(np.median(self.medians))
+        first = (self.high if median > PLAUSIBLE_MEDIAN_DEPTH_M[1] else self.low)[0]
+        try:
+            check_depth_range(np.array([median]), first.depth_path, first.depth_units_per_metre)
+        except DataError as error:
+            raise DataError(
+                f"{error} (the median of the medians of the {len(self.medians)} depth "
+                "maps read, the first outside named)"
+            ) from None
+
+
+def implausible_frame(view: MapView, depth: np.ndarray) -> str:
+    """Why a frame of a plausible map loses its depth, said once on stderr (printed
+    even when quiet, as a cache note is: it changes the map)."""
+    low, high = PLAUSIBLE_MEDIAN_DEPTH_M
+    reason = (
+        f"median depth {median_depth(depth):.3g} m in {view.depth_path}, outside "
+        f"{low:g}-{high:g} m while the map's is within: its depth is left out"
+    )
+    print(f"note: map image {view.name!r}: {reason}", file=sys.stderr)
+    return reason
 
 
 def build_from_depth(
@@ -84,8 +171,10 @@ def build_from_depth(
     Policy for views without usable depth: the view is kept with its features and
     all-NaN points (queries may still match it; those matches give no
     correspondence) and listed in `skipped_views` with the reason: no depth_path,
-    a missing, corrupt or non-16-bit file (read_depth's message, naming it), no
-    depth reading at any keypoint, or no keypoints at all.
+    a missing, corrupt or non-16-bit file (read_depth's message, naming it), a
+    median depth outside PLAUSIBLE_MEDIAN_DEPTH_M in a map whose depth is plausible
+    (one note on stderr names it), no depth reading at any keypoint, or no
+    keypoints at all.
 
     Each view is read once, in order, so `views` may be a lazy sequence that loads
     its images on access.
@@ -102,8 +191,9 @@ def build_from_depth(
 
     Raises:
         DataError: naming the view when an entry is not a MapView or its pose is not
-            finite; naming the depth file when its aspect ratio is not the image's
-            or its median depth is implausible in metres (a wrong depth scale).
+            finite; naming the depth file when its aspect ratio is not the image's;
+            naming a depth file when the map's depth is implausible in metres (a
+            wrong depth scale, judged over the map: DepthScale).
         ConfigError: when `max_features` is not an integer >= 1.
     """
     checked_views(views)
@@ -111,10 +201,16 @@ def build_from_depth(
     image_scale = checked_image_scale(image_scale)
     features, points, poses, cameras, names, skipped = [], [], [], [], [], []
     progress = Progress(len(views), "map structure from depth", quiet=quiet)
+    scale = DepthScale(len(views))
     for number in range(len(views)):
         view = checked_view(number, views[number])
         found = on_descriptor_grid(extract_rootsift(view.image, max_features, image_scale))
-        depth, reason = depth_of_view(view)
+        depth, reason = raw_depth(view)
+        if depth is not None and not scale.plausible(view, depth):
+            reason = implausible_frame(view, depth)
+            depth = None
+        elif depth is not None:
+            depth = in_image_pixels(view, depth)
         if depth is None:
             lifted = np.full((len(found), 3), np.nan, dtype=np.float32)
         else:
@@ -132,6 +228,7 @@ def build_from_depth(
         names.append(view.name)
         progress.advance()
     progress.close()
+    scale.finish()
     return StructureMap(
         features=tuple(features),
         points=tuple(points),

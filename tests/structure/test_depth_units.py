@@ -1,0 +1,50 @@
+"""The depth scale is judged over the map, not per frame: one close-range frame (a
+camera facing a wall) loses its depth with one note and the build goes on, while a
+map whose depth is all at a wrong scale is still refused naming a file."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+import pytest
+
+from relocfw.core.errors import DataError
+from relocfw.structure.depth_structure import build_from_depth
+
+
+def scaled_depth(view, factor: float, path):
+    """The view with its depth PNG's readings times `factor`, written to `path`."""
+    raw = cv2.imread(str(view.depth_path), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(path), np.rint(raw * factor).astype(np.uint16))
+    return dataclasses.replace(view, depth_path=path)
+
+
+def test_one_close_range_frame_loses_its_depth_and_the_build_goes_on(
+    synthetic_scene, tmp_path, capsys
+):
+    views = list(synthetic_scene.views)
+    # About 3 m of wall read at 1/100: a median of 3 cm, below any sensor's range.
+    views[1] = scaled_depth(views[1], 0.01, tmp_path / "close.depth.png")
+    structure = build_from_depth(views, max_features=256, quiet=True)
+    assert [v.name for v in structure.skipped_views] == ["view-1"]
+    assert "median depth 0.03" in structure.skipped_views[0].reason
+    assert not np.isfinite(structure.points[1]).any()
+    for index in (0, 2):
+        assert np.isfinite(structure.points[index]).all(axis=1).sum() > 100
+    notes = [line for line in capsys.readouterr().err.splitlines() if "view-1" in line]
+    assert len(notes) == 1 and str(tmp_path / "close.depth.png") in notes[0], notes
+
+
+def test_a_map_whose_depth_is_all_at_a_wrong_scale_is_refused(synthetic_scene, tmp_path):
+    views = [dataclasses.replace(view, depth_units_per_metre=1.0) for view in synthetic_scene.views]
+    with pytest.raises(DataError, match=r"median depth 3\.\d+e\+03 m .*millimetres read as metres"):
+        build_from_depth(views, max_features=64, quiet=True)
+
+
+def test_normal_depth_builds_the_same_map_as_before(synthetic_scene, depth_structure):
+    again = build_from_depth(synthetic_scene.views[:2], max_features=1024, quiet=True)
+    assert again.skipped_views == ()
+    for a, b in zip(again.points, depth_structure.points, strict=True):
+        assert np.array_equal(a, b, equal_nan=True)
