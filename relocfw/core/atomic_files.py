@@ -4,6 +4,10 @@ A run killed mid-write leaves the previous file intact, never a truncated one.
 Checkpoints and model files (relocfw.model.checkpoints), results, tables and
 figures are all written through here.
 
+Folders of files are written the same way: into a staging folder beside their place
+(`staging_folder`, locked while written) and renamed into place when complete
+(`publish_folder`); `remove_stale_folders` clears the ones killed writers left.
+
 Several runs may share one cache folder. A writer holds an exclusive advisory lock
 (flock) on its temporary for as long as the temporary exists, so
 `remove_stale_temporaries` can tell a live writer's temporary (locked) from a killed
@@ -19,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 import time
 from collections.abc import Iterator
@@ -140,6 +145,69 @@ def publish_folder(staging: Path, folder: Path, marker: str) -> None:
     except OSError:
         if not (Path(folder) / marker).is_file():  # not a concurrent writer that won
             raise
+
+
+def staging_folder(parent: Path, prefix: str) -> tuple[Path, int]:
+    """A new hidden folder in `parent` (named `prefix` + a random part) to write files
+    into before they are published, and an open handle of it holding an exclusive lock
+    (as `atomic_write` holds its temporary's) until `release_folder`: so
+    `remove_stale_folders` tells a live writer's folder from a killed one's."""
+    parent.mkdir(parents=True, exist_ok=True)
+    folder = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    handle = os.open(folder, os.O_RDONLY)
+    hold_exclusive_lock(handle)
+    return folder, handle
+
+
+def release_folder(handle: int) -> None:
+    """Close a `staging_folder`'s handle (its lock goes with it)."""
+    with suppress(OSError):
+        os.close(handle)
+
+
+def remove_stale_folders(parent: Path, prefix: str) -> list[Path]:
+    """Delete the staging folders named `prefix`* in `parent` that killed writers left
+    (a bag extraction, a compact map), and say which.
+
+    As `remove_if_abandoned` does for files: a folder is removed only when it is older
+    than LOCKED_GRACE_SECONDS (UNLOCKED_GRACE_SECONDS without flock) and no writer
+    holds its lock, taken here for the removal so no writer can take it up meanwhile.
+    """
+    removed = []
+    now = time.time()
+    grace = LOCKED_GRACE_SECONDS if fcntl is not None else UNLOCKED_GRACE_SECONDS
+    for folder in sorted(Path(parent).glob(f"{prefix}*")):
+        try:
+            if not folder.is_dir() or folder.is_symlink():
+                continue
+            if now - folder.stat().st_mtime < grace:
+                continue
+            handle = os.open(folder, os.O_RDONLY)
+        except OSError:  # gone already (its writer published it) or unreadable
+            continue
+        try:
+            if fcntl is not None:
+                try:
+                    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:  # a live writer holds it
+                    continue
+            shutil.rmtree(folder, ignore_errors=True)
+            removed.append(folder)
+        finally:
+            os.close(handle)
+    return removed
+
+
+@contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """An exclusive lock on `folder` itself for the block (no-op without flock): the
+    writers that publish into one folder take turns, and leave no lock file behind."""
+    handle = os.open(folder, os.O_RDONLY)
+    try:
+        hold_exclusive_lock(handle)
+        yield
+    finally:
+        os.close(handle)
 
 
 def write_text_atomic(text: str, path: Path) -> None:

@@ -9,9 +9,11 @@ npz, named by the same content key (`<key>.compact/`), so one key names both and
 changed map (other images, poses, settings or code versions) gets another folder.
 
 The writer (relocfw.structure.compact_writer) publishes all or nothing: the arrays
-go to a hidden staging folder beside the target, map.json last, and the folder is
-renamed into place when complete. So a folder under the key's name either opens
-cleanly, and is reused, or is damaged by something else and is rewritten. A folder
+go to a hidden staging folder beside the target, map.json last, and when complete the
+key's name (a link) is swapped to it in one rename; runs writing the same key at once
+both succeed, and a run reading it meanwhile opens one whole map. So a folder under
+the key's name either opens cleanly, and is reused, or is damaged by something else
+and is rewritten. A folder
 that opens but does not hold the map it is named after (copied over, or left by
 code that wrote other rows) is rewritten too: its image names and per-image row
 counts are compared with the StructureMap, which costs nothing beside building

@@ -8,7 +8,10 @@ only its ten or so keyframes. So the compact layout is a folder of flat, uncompr
 arrays, and each keyframe's rows come from the disk (or the page cache) when a query
 asks for them.
 
-The folder (written by relocfw.structure.compact_writer):
+The map's folder is a symbolic link to its current version, a hidden folder beside
+it that a writer never changes once published (relocfw.structure.compact_writer);
+`open` resolves the link once and reads every file from that version (a plain folder,
+as an older relocfw wrote, is read as it is). Each version holds:
 
     map.json       kind, format, source, images M, rows T, the descriptor code and
                    point dtype, and each array file's size in bytes (written last:
@@ -59,6 +62,7 @@ they are already in memory.
 from __future__ import annotations
 
 import json
+import os
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -80,6 +84,9 @@ POINT_DTYPES = ("float16", "float32")
 # The array files of every map (a product quantiser's adds centres.npy).
 ARRAY_FILES = ("offsets", "codes", "points", "poses", "cameras", "names")
 QUATERNION_TOLERANCE = 1e-6
+# How often `open` resolves the map's link again when the version it resolved was
+# replaced while it read (each writer's publish takes milliseconds).
+OPEN_ATTEMPTS = 5
 
 
 class CompactMap:
@@ -126,12 +133,29 @@ class CompactMap:
                 rise from 0 to the rows, a pose that is not finite and unit, a
                 camera that is not one).
         """
+        # The folder is a link to the current version of the map (written by
+        # relocfw.structure.compact_writer), or a plain folder: resolved once, so every
+        # file comes from one version. A writer removes a version once another is
+        # current; a reader that resolved it just before reads the current one.
+        # Messages name the map's files as the caller names the map.
         folder = Path(folder)
-        meta = read_meta(folder)
+        for _ in range(OPEN_ATTEMPTS - 1):
+            version = Path(os.path.realpath(folder))
+            try:
+                return cls.open_version(version, folder)
+            except DataError:
+                if Path(os.path.realpath(folder)) == version:
+                    raise
+        return cls.open_version(Path(os.path.realpath(folder)), folder)
+
+    @classmethod
+    def open_version(cls, version: Path, folder: Path) -> CompactMap:
+        """`open` of one resolved folder (a version of the map `folder`)."""
+        meta = read_meta(version, folder)
         codec = DescriptorCodec(None)
         if meta["codes"] == PQ:
-            codec = DescriptorCodec(np.array(load_array(folder, "centres", meta)))
-        arrays = {name: load_array(folder, name, meta) for name in ARRAY_FILES}
+            codec = DescriptorCodec(np.array(load_array(version, "centres", meta, folder)))
+        arrays = {name: load_array(version, name, meta, folder) for name in ARRAY_FILES}
         check_arrays(arrays, meta, codec, lambda name: str(folder / f"{name}.npy"))
         return cls(folder, meta["source"], codec, arrays)
 
@@ -325,16 +349,17 @@ def localize_in_compact_map(
     )
 
 
-def read_meta(folder: Path) -> dict:
-    """map.json of `folder`, checked; DataError naming it."""
-    path = folder / META_FILE
+def read_meta(folder: Path, shown: Path | None = None) -> dict:
+    """map.json of `folder`, checked; DataError naming it in `shown` (the map's
+    folder as the caller names it; default `folder`)."""
+    path, named = folder / META_FILE, (shown or folder) / META_FILE
     if not path.is_file():
-        raise DataError(f"not a relocfw compact structure map: {path} is missing")
+        raise DataError(f"not a relocfw compact structure map: {named} is missing")
     try:
         meta = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as error:
-        raise DataError(f"cannot read {path} (truncated or corrupt: {error})") from None
-    return checked_meta(meta, str(path))
+        raise DataError(f"cannot read {named} (truncated or corrupt: {error})") from None
+    return checked_meta(meta, str(named))
 
 
 def checked_meta(meta: object, where: str, needs_file_bytes: bool = True) -> dict:
@@ -359,22 +384,24 @@ def checked_meta(meta: object, where: str, needs_file_bytes: bool = True) -> dic
     return meta
 
 
-def load_array(folder: Path, name: str, meta: dict) -> np.ndarray:
+def load_array(folder: Path, name: str, meta: dict, shown: Path | None = None) -> np.ndarray:
     """`name`.npy of the map, memory-mapped, after its size is checked against
-    map.json's record (a truncated or overwritten file is named, not misread)."""
-    path = folder / f"{name}.npy"
+    map.json's record (a truncated or overwritten file is named, not misread); messages
+    name it in `shown` (default `folder`)."""
+    path, named = folder / f"{name}.npy", (shown or folder) / f"{name}.npy"
     expected = meta["file_bytes"].get(f"{name}.npy")
-    if not path.is_file():
-        raise DataError(f"compact structure map file missing: {path}")
-    size = path.stat().st_size
+    try:
+        size = path.stat().st_size
+    except OSError:
+        raise DataError(f"compact structure map file missing: {named}") from None
     if size != expected:
         raise DataError(
-            f"{path} is {size} bytes, map.json records {expected} (truncated or replaced)"
+            f"{named} is {size} bytes, map.json records {expected} (truncated or replaced)"
         )
     try:
         return np.load(path, mmap_mode="r", allow_pickle=False)
     except (OSError, ValueError, EOFError) as error:
-        raise DataError(f"cannot read {path} (corrupt: {error})") from None
+        raise DataError(f"cannot read {named} (corrupt: {error})") from None
 
 
 def check_arrays(

@@ -6,10 +6,19 @@ appends their rows to codes.npy and points.npy. A map of 10^5 images is never in
 memory, and the writes go through the file, not a memory map, so the writing
 process's resident memory stays what the small arrays take.
 
-All or nothing: the files go to a hidden folder beside the target, map.json last,
-and the folder is renamed into place when complete; an exception (or a kill) leaves
-the target as it was. An existing compact map at the target is replaced; any other
-existing folder is refused, never deleted.
+All or nothing, and safe with several writers and readers of one map: the files go
+to a hidden staging folder beside the target, map.json last. When complete it is
+renamed to a version folder (`.<name>.version-<random>`) and the target, a symbolic
+link to the current version, is swapped to it by one rename: a reader resolves the
+link once and reads one whole version (relocfw.structure.compact_map), never half of
+one and half of another. Writers publish in turn (a lock on the parent folder), and
+each removes the versions that are no longer current, so two writers of one map both
+succeed, the last one's map stays, and nothing else is left. A reader that resolved
+a version just removed opens the current one (CompactMap.open retries). An exception
+leaves the target as it was; a kill leaves a staging folder, which the next writer of
+the map removes (relocfw.core.atomic_files.remove_stale_folders). An existing compact
+map at the target (a link, or the plain folder of an older relocfw) is replaced; any
+other existing folder is refused, never deleted.
 
 `save_compact_map` writes a StructureMap this way: the rows with a 3-D point, their
 points moved into their image's camera frame, descriptors coded with the codec.
@@ -20,13 +29,18 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO
 
 import numpy as np
 
+from relocfw.core.atomic_files import (
+    folder_lock,
+    release_folder,
+    remove_stale_folders,
+    staging_folder,
+)
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.geometry import quaternion_to_matrix
@@ -79,8 +93,9 @@ class CompactMapWriter:
         self.codec = codec
         self.source = source
         self.point_dtype = np.dtype(point_dtype)
-        self.staging = Path(
-            tempfile.mkdtemp(prefix=f".{self.folder.name}.", dir=self.folder.parent)
+        remove_stale_folders(self.folder.parent, staging_prefix(self.folder))
+        self.staging, self.staging_lock = staging_folder(
+            self.folder.parent, staging_prefix(self.folder)
         )
         self.added = 0
         self.poses: list[np.ndarray] = []
@@ -194,23 +209,51 @@ class CompactMapWriter:
         self.publish()
 
     def publish(self) -> None:
-        """Rename the staging folder to the target (an older map there moved aside
-        first and removed after)."""
-        older = None
-        if self.folder.exists():
-            older = Path(
-                tempfile.mkdtemp(prefix=f".{self.folder.name}.old.", dir=self.folder.parent)
-            )
-            os.replace(self.folder, older / "map")
-        os.replace(self.staging, self.folder)
-        if older is not None:
-            shutil.rmtree(older, ignore_errors=True)
+        """Make the finished staging folder the map (see the module's note): renamed
+        to a version, the target's link swapped to it, older versions removed."""
+        try:
+            with folder_lock(self.folder.parent):
+                publish_version(self.staging, self.folder)
+        finally:
+            release_folder(self.staging_lock)
 
     def abort(self) -> None:
         """Drop everything written (the target is left as it was)."""
         for stream in self.streams.values():
             stream.close()
         shutil.rmtree(self.staging, ignore_errors=True)
+        release_folder(self.staging_lock)
+
+
+def staging_prefix(folder: Path) -> str:
+    """How the staging folders of the map `folder` are named (then a random part)."""
+    return f".{folder.name}.staging-"
+
+
+def version_prefix(folder: Path) -> str:
+    """How the version folders of the map `folder` are named (then a random part)."""
+    return f".{folder.name}.version-"
+
+
+def publish_version(staging: Path, folder: Path) -> None:
+    """Rename `staging` to a version of `folder`, point `folder` (a link) at it by one
+    rename, and remove every other version; the caller holds the parent's lock, so no
+    other writer is between these steps."""
+    token = staging.name.rsplit("-", 1)[-1]
+    version = folder.parent / f"{version_prefix(folder)}{token}"
+    os.replace(staging, version)
+    link = folder.parent / f".{folder.name}.link-{token}"
+    link.unlink(missing_ok=True)
+    # Relative: the map's folder may be moved or mounted elsewhere whole.
+    os.symlink(version.name, link)
+    if folder.is_dir() and not folder.is_symlink():
+        # A map an older relocfw wrote as a plain folder: moved aside first (a rename
+        # cannot replace a folder by a link); its readers see the new map or none.
+        os.replace(folder, folder.parent / f"{version_prefix(folder)}{token}-older")
+    os.replace(link, folder)
+    for other in folder.parent.glob(f"{version_prefix(folder)}*"):
+        if other != version:
+            shutil.rmtree(other, ignore_errors=True)
 
 
 def started_array(path: Path, dtype: np.dtype, shape: tuple[int, ...]) -> IO[bytes]:

@@ -1,0 +1,70 @@
+"""Two processes writing the same compact map, and a third reading it meanwhile: every
+write succeeds (the last one wins), no staging folder is left, and the reader only
+ever opens a whole map, one of the two written."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import traceback
+
+import numpy as np
+import pytest
+
+from relocfw.structure.compact_map import CompactMap
+from relocfw.structure.compact_writer import save_compact_map
+
+pytestmark = pytest.mark.skipif(os.name != "posix", reason="fork and symlinks are POSIX")
+
+WRITES = 30  # per writer: a race shows within a few dozen (3 of 120 failed before)
+
+
+def write_often(structure, folder, point_dtype, errors) -> None:
+    for _ in range(WRITES):
+        try:
+            save_compact_map(structure, folder, None, point_dtype)
+        except Exception:  # noqa: BLE001 (reported to the test)
+            errors.put(traceback.format_exc(limit=2))
+
+
+def read_often(folder, stop, errors, reads) -> None:
+    count = 0
+    while not stop.is_set():
+        try:
+            compact = CompactMap.open(folder)
+            compact.keyframe_map([0, 1])
+            assert compact.points.dtype in (np.float16, np.float32)
+            count += 1
+        except Exception:  # noqa: BLE001 (reported to the test)
+            errors.put(traceback.format_exc(limit=2))
+    reads.put(count)
+
+
+def test_two_writers_and_a_reader_race_without_a_fault(depth_structure, tmp_path):
+    folder = tmp_path / "map"
+    save_compact_map(depth_structure, folder)
+    context = multiprocessing.get_context("fork")  # the map and imports are inherited
+    errors, reads, stop = context.Queue(), context.Queue(), context.Event()
+    writers = [
+        context.Process(target=write_often, args=(depth_structure, folder, dtype, errors))
+        for dtype in ("float16", "float32")
+    ]
+    reader = context.Process(target=read_often, args=(folder, stop, errors, reads))
+    reader.start()
+    for writer in writers:
+        writer.start()
+    for writer in writers:
+        writer.join(timeout=120)
+    stop.set()
+    reader.join(timeout=60)
+    faults = []
+    while not errors.empty():
+        faults.append(errors.get())
+    assert faults == [], faults[0]
+    assert all(p.exitcode == 0 for p in (*writers, reader))
+    assert reads.get(timeout=10) > 0
+    # Nothing but the map is left beside it (its current version included).
+    compact = CompactMap.open(folder)
+    assert len(compact) == len(depth_structure)
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name != "map"]
+    assert len(leftovers) <= 1 and all(folder.resolve().name == n for n in leftovers), leftovers
