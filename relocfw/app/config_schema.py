@@ -131,6 +131,10 @@ class ServeConfig:
     max_pixels: int = MISSING
     token_file: Optional[str] = None  # noqa: UP045
     retry_after_s: int = MISSING
+    header_timeout_s: float = MISSING
+    body_timeout_s: float = MISSING
+    shutdown_timeout_s: float = MISSING
+    max_connections: int = MISSING
 
 
 @dataclass

@@ -2,12 +2,15 @@
 
 Every refusal is one JSON object {"error": "one line"} with a 4xx status, raised
 before any work it would waste: the token (401), the content type (415), the query
-fields (422), a full queue (503), the body's size (413) and its image (400). The
-service goes on serving after each.
+fields (422), the body's size (413) and its time (408), a full queue (503) and the
+image (400). The service goes on serving after each. A request takes its queue place
+only once its whole body is in, so clients that send their bodies slowly, or never,
+hold no place a real query needs (the body timeout ends them).
 """
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -19,19 +22,19 @@ from fastapi.concurrency import run_in_threadpool
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException
+from starlette.requests import ClientDisconnect
 
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.version import VERSION
 from relocfw.serve.answers import ModelInfo, Timings, answer_json
 from relocfw.serve.auth import BearerToken
 from relocfw.serve.fields import FieldError, parse_fields
+from relocfw.serve.guard import CLIENT_LEFT, LOG, ASGIApp, Guarded, over_capacity, refusal
 from relocfw.serve.images import MediaTypeError, check_content_type, decode_image
 from relocfw.serve.queue import QueryQueue, QueueFullError
 from relocfw.serve.settings import ServeSettings
 from relocfw.serve.workers import Query as LocalizeQuery
 
-# A client whose request was dropped because it left (nginx's code; it never sees it).
-CLIENT_LEFT = 499
 IMAGE_BODY = {"schema": {"type": "string", "format": "binary"}}
 LOCALIZE_BODY = {
     "requestBody": {
@@ -46,8 +49,19 @@ class BodyTooLargeError(DataError):
     """The body is over serve.max_bytes (answered 413)."""
 
 
+class BodyTimeoutError(DataError):
+    """The body was not in within serve.body_timeout_s (answered 408)."""
+
+
 class UnauthorizedError(DataError):
     """No token, or not the one in serve.token_file (answered 401)."""
+
+
+class ClientLeftError(Exception):
+    """The client disconnected before its whole body was in."""
+
+    def __init__(self, received: int, declared: str) -> None:
+        super().__init__(f"{received} of {declared or 'unknown'} bytes")
 
 
 @dataclass(frozen=True)
@@ -60,15 +74,12 @@ class Service:
     token: BearerToken | None = None
 
 
-def refusal(status: int, message: str, headers: dict[str, str] | None = None) -> JSONResponse:
-    return JSONResponse({"error": message}, status_code=status, headers=headers)
-
-
 def status_of(error: Exception) -> int:
     """The 4xx of one of relocfw's refusals."""
     for kind, status in (
         (UnauthorizedError, 401),
         (BodyTooLargeError, 413),
+        (BodyTimeoutError, 408),
         (MediaTypeError, 415),
         (FieldError, 422),
         (ConfigError, 422),
@@ -80,17 +91,36 @@ def status_of(error: Exception) -> int:
 
 async def read_body(request: Request, max_bytes: int) -> bytes:
     """The body, refused (BodyTooLargeError) as soon as it is known to pass `max_bytes`:
-    from Content-Length before reading, else while reading, never held whole."""
+    from Content-Length before reading, else while reading, never held whole.
+
+    Raises:
+        ClientLeftError: the client disconnected before the body's end.
+    """
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > max_bytes:
         raise BodyTooLargeError(f"the body is {declared} bytes, over serve.max_bytes={max_bytes}")
     chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > max_bytes:
-            raise BodyTooLargeError(f"the body is over serve.max_bytes={max_bytes} bytes")
-        chunks.append(chunk)
+    try:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > max_bytes:
+                raise BodyTooLargeError(f"the body is over serve.max_bytes={max_bytes} bytes")
+            chunks.append(chunk)
+    except ClientDisconnect:
+        raise ClientLeftError(size, declared) from None
     return b"".join(chunks)
+
+
+async def read_body_in_time(request: Request, settings: ServeSettings) -> bytes:
+    """read_body within serve.body_timeout_s (BodyTimeoutError after it)."""
+    try:
+        async with asyncio.timeout(settings.body_timeout_s):
+            return await read_body(request, settings.max_bytes)
+    except TimeoutError:
+        raise BodyTimeoutError(
+            f"the body was not in within serve.body_timeout_s={settings.body_timeout_s:g} "
+            "seconds of the request's headers"
+        ) from None
 
 
 async def client_left(request: Request) -> None:
@@ -100,26 +130,49 @@ async def client_left(request: Request) -> None:
         pass
 
 
+def served_app(service: Service) -> ASGIApp:
+    """What uvicorn runs: the application, its refusals counted (relocfw.serve.guard)."""
+    settings = service.settings
+    return Guarded(create_app(service), service.queue.counts, settings.shutdown_timeout_s)
+
+
+def over_capacity_app(service: Service) -> ASGIApp:
+    """What a connection above serve.max_connections runs: a JSON 503, counted."""
+    settings = service.settings
+    refuse = over_capacity(settings.max_connections, settings.retry_after_s)
+    return Guarded(refuse, service.queue.counts, settings.shutdown_timeout_s)
+
+
 def create_app(service: Service) -> FastAPI:
-    """The application; its lifespan's end waits for the workers' queries to finish."""
+    """The application; its lifespan's end waits for the workers' queries to finish.
+
+    With a token (serve.token_file) the schema needs it too and FastAPI's pages (/docs,
+    /redoc) are off: a browser cannot send the token to them.
+    """
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         yield
         await run_in_threadpool(service.queue.workers.shutdown)
 
+    pages: dict[str, Any] = (
+        {"docs_url": None, "redoc_url": None, "openapi_url": None} if service.token else {}
+    )
     app = FastAPI(
         title="relocfw",
         version=VERSION,
         summary="6-DoF camera pose of one image against a loaded map",
         lifespan=lifespan,
+        **pages,
     )
 
     @app.exception_handler(DataError)
     @app.exception_handler(ConfigError)
     async def refused(_: Request, error: Exception) -> JSONResponse:
         headers = {"WWW-Authenticate": "Bearer"} if isinstance(error, UnauthorizedError) else None
-        return refusal(status_of(error), str(error), headers)
+        # The body was not read to its end: the connection cannot carry another request.
+        unread = isinstance(error, BodyTimeoutError | BodyTooLargeError)
+        return refusal(status_of(error), str(error), headers, close=unread)
 
     @app.exception_handler(RequestValidationError)
     async def invalid(_: Request, error: RequestValidationError) -> JSONResponse:
@@ -131,17 +184,31 @@ def create_app(service: Service) -> FastAPI:
     async def http_error(_: Request, error: HTTPException) -> JSONResponse:
         return refusal(error.status_code, str(error.detail), error.headers)
 
+    def has_token(request: Request) -> bool:
+        return service.token is None or service.token.allows(request.headers.get("authorization"))
+
     def check_token(request: Request) -> None:
-        if service.token is not None and not service.token.allows(
-            request.headers.get("authorization")
-        ):
+        if not has_token(request):
             raise UnauthorizedError(
                 "this service needs a bearer token: send `Authorization: Bearer TOKEN` "
                 "with the token of its serve.token_file"
             )
 
-    @app.get("/v1/health", summary="Ready, and how full the queue is (no token needed)")
-    async def health() -> dict[str, Any]:
+    if service.token is not None:
+
+        @app.get("/openapi.json", include_in_schema=False)
+        async def schema(request: Request) -> dict[str, Any]:
+            check_token(request)
+            return app.openapi()
+
+    @app.get(
+        "/v1/health",
+        summary="Ready, and how full the queue is (with a token set, callers without it "
+        "get the status only)",
+    )
+    async def health(request: Request) -> dict[str, Any]:
+        if not has_token(request):
+            return {"status": "ready"}
         counts = service.queue.counts
         return {
             "status": "ready",
@@ -185,12 +252,16 @@ def create_app(service: Service) -> FastAPI:
             "(serve.max_pending); retry after the Retry-After seconds"
         )
         try:
-            queue.reserve()  # before the body is read: decoded images count too
+            body = await read_body_in_time(request, service.settings)
+        except ClientLeftError as left:
+            LOG.warning("relocfw serve: a client left before its body was in (%s)", left)
+            return Response(status_code=CLIENT_LEFT)
+        try:
+            queue.reserve()  # once the body is in: the decoded images count too
         except QueueFullError:
             return refusal(503, full, retry)
         handed_over = False
         try:
-            body = await read_body(request, service.settings.max_bytes)
             image = await run_in_threadpool(decode_image, body, service.settings.max_pixels)
             camera = fields.camera(image.shape[1], image.shape[0])
             decoded = time.perf_counter()

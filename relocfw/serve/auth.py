@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import hmac
+import os
+import stat
 from pathlib import Path
 
 from relocfw.core.errors import ConfigError
@@ -11,6 +13,10 @@ from relocfw.core.errors import ConfigError
 # Shorter tokens are guessable by trying; 16 characters of a random hex or base64
 # token are 64 bits or more.
 MIN_TOKEN_LENGTH = 16
+# Permission bits that give the file's group or other users any access: a token they
+# can read is theirs too. ssh refuses a private key with any of them set, and so does
+# this (POSIX only: Windows has no such bits).
+SHARED_BITS = stat.S_IRWXG | stat.S_IRWXO
 
 
 class BearerToken:
@@ -24,13 +30,20 @@ class BearerToken:
         """The file's text without surrounding whitespace (a trailing newline).
 
         Raises:
-            ConfigError: naming serve.token_file: missing, unreadable, or a token
-                shorter than MIN_TOKEN_LENGTH characters or with inner whitespace.
+            ConfigError: naming serve.token_file: missing, unreadable, readable by
+                other users (group or others have any permission: chmod 600), or a
+                token shorter than MIN_TOKEN_LENGTH characters or with inner whitespace.
         """
         try:
             token = Path(path).read_text(encoding="utf-8").strip()
+            mode = stat.S_IMODE(os.stat(path).st_mode)
         except (OSError, UnicodeDecodeError) as error:
             raise ConfigError(f"serve.token_file={path}: cannot read it ({error})") from error
+        if os.name == "posix" and mode & SHARED_BITS:
+            raise ConfigError(
+                f"serve.token_file={path}: other users may read it (mode {mode:o}); "
+                f"make it the service user's alone: chmod 600 {path}"
+            )
         if len(token) < MIN_TOKEN_LENGTH or any(c.isspace() for c in token):
             raise ConfigError(
                 f"serve.token_file={path}: the token must be one word of at least "

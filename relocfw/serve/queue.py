@@ -1,8 +1,9 @@
 """The bounded queue in front of the workers (serve.max_pending).
 
-A request holds its place from before its body is read until its worker is done with
-its query, whether or not its caller still waits: the count covers the images being
-decoded and what the workers owe, so the bound holds for both. One more than
+A request takes its place once its whole body is in (a client that sends its body
+slowly, or never, holds none) and holds it until its worker is done with its query,
+whether or not its caller still waits: the count covers the images being decoded and
+what the workers owe, so the bound holds for both. One more than
 max_pending is refused at once (QueueFullError, answered 503 with Retry-After), never
 kept in an unbounded backlog. A caller that disconnects while its query waits takes
 the query out (it never runs); one whose query already runs leaves it to finish,
@@ -26,7 +27,15 @@ class QueueFullError(Exception):
 
 @dataclass
 class QueueCounts:
-    """What the queue has done, for GET /v1/health."""
+    """What the service has done, for GET /v1/health.
+
+    Attributes:
+        pending: queries holding a place: being decoded, waiting or running.
+        answered: queries answered (200).
+        refused: requests answered with a refusal, a 4xx or a 503, by any layer
+            (counted by relocfw.serve.guard).
+        abandoned: queries whose caller left before the answer.
+    """
 
     pending: int = 0
     answered: int = 0
@@ -47,15 +56,14 @@ class QueryQueue:
         self.counts = QueueCounts()
 
     def reserve(self) -> None:
-        """Take a place for a request before its body is read, so the images being
-        decoded count against max_pending too; the place goes to its job (`run`) or
-        back (`release`).
+        """Take a place for a request whose body is in, before it is decoded, so the
+        images being decoded count against max_pending too; the place goes to its
+        job (`run`) or back (`release`).
 
         Raises:
             QueueFullError: max_pending places are taken.
         """
         if self.counts.pending >= self.max_pending:
-            self.counts.refused += 1
             raise QueueFullError
         self.counts.pending += 1
 

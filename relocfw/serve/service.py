@@ -1,12 +1,15 @@
 """Serving a loaded model: the socket, uvicorn, and a clean end on SIGTERM.
 
-SIGTERM (or Ctrl-C) stops accepting connections; uvicorn lets the requests in flight
-finish and answers them, then the application's lifespan waits for the workers, and
-the process exits 0.
+SIGTERM or Ctrl-C (SIGINT) stops accepting connections and closes the idle ones;
+uvicorn lets the requests in flight finish and answers them for up to
+serve.shutdown_timeout_s, answers the ones still open then 503 (relocfw.serve.guard),
+the application's lifespan waits for the query running in a worker, and the process
+exits 0. Connections get a header timeout and a cap (relocfw.serve.connections).
 """
 
 from __future__ import annotations
 
+import ipaddress
 import signal
 import socket
 import sys
@@ -18,8 +21,9 @@ import uvicorn
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.pipeline import Relocalizer
 from relocfw.serve.answers import describe_model
-from relocfw.serve.app import Service, create_app
+from relocfw.serve.app import Service, over_capacity_app, served_app
 from relocfw.serve.auth import BearerToken
+from relocfw.serve.connections import ACCEPT_BACKLOG, guarded_protocol, reserve_open_files
 from relocfw.serve.queue import QueryQueue
 from relocfw.serve.settings import ServeSettings
 from relocfw.serve.workers import Loader, Workers
@@ -41,7 +45,7 @@ def listening_socket(host: str, port: int) -> socket.socket:
         raise ConfigError(
             f"cannot listen on serve.host={host} serve.port={port}: {error.strerror or error}"
         ) from error
-    listener.listen(128)
+    listener.listen(ACCEPT_BACKLOG)
     return listener
 
 
@@ -50,10 +54,36 @@ def url_of(listener: socket.socket) -> str:
     return f"http://[{host}]:{port}" if ":" in host else f"http://{host}:{port}"
 
 
+# The signals that stop the service after a drain: a supervisor's and Ctrl-C.
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+
+
+def exposure_warning(host: str, token: bool) -> str | None:
+    """One line to print when the service listens beyond this machine (`host`: the
+    bound address) without a token; None otherwise."""
+    try:
+        loopback = ipaddress.ip_address(host.split("%")[0]).is_loopback
+    except ValueError:
+        loopback = host == "localhost"
+    if loopback or token:
+        return None
+    return (
+        f"warning: serve.host={host} accepts connections from other machines and no "
+        "serve.token_file is set: anyone who reaches the port can use the service"
+    )
+
+
+def check_open_files(settings: ServeSettings) -> None:
+    """Before loading anything: the open files serve.max_connections needs are allowed
+    (the soft limit raised where needed), or a ConfigError naming the key."""
+    reserve_open_files(settings.max_connections)
+
+
 def after_drain(signum: int, frame: FrameType | None) -> None:
-    """SIGTERM's handler while serving: uvicorn catches the signal itself, drains, and
-    raises it again once done so that the handler before it runs; this one lets the
-    process end as a finished run (exit 0) instead of dying of the signal."""
+    """SIGTERM's and SIGINT's handler while serving: uvicorn catches the signal itself,
+    drains, and raises it again once done so that the handler before it runs; this one
+    lets the process end as a finished run (exit 0) instead of dying of the signal or
+    raising KeyboardInterrupt."""
 
 
 def run_service(settings: ServeSettings, relocalizer: Relocalizer, loader: Loader) -> None:
@@ -64,8 +94,10 @@ def run_service(settings: ServeSettings, relocalizer: Relocalizer, loader: Loade
             (serve.workers > 1); picklable.
 
     Raises:
-        ConfigError: the token file cannot be used, or host:port cannot be bound.
+        ConfigError: the token file cannot be used, host:port cannot be bound, or the
+            open files serve.max_connections needs are not allowed.
     """
+    check_open_files(settings)
     token = BearerToken.from_file(settings.token_file) if settings.token_file else None
     info = describe_model(relocalizer, settings.model)
     listener = listening_socket(settings.host, settings.port)
@@ -78,24 +110,35 @@ def run_service(settings: ServeSettings, relocalizer: Relocalizer, loader: Loade
             f"a worker process could not load serve.model={settings.model} (its error is above)"
         ) from error
     queue = QueryQueue(workers, settings.max_pending)
-    app = create_app(Service(settings, queue, info, token))
+    service = Service(settings, queue, info, token)
+    protocol = guarded_protocol(
+        settings.header_timeout_s, settings.max_connections, over_capacity_app(service)
+    )
     config = uvicorn.Config(
-        app,
+        served_app(service),
+        http=protocol,
+        backlog=ACCEPT_BACKLOG,
         log_level="info",
         access_log=False,
         lifespan="on",
-        timeout_graceful_shutdown=None,  # a query in flight is always finished
+        # Then the requests still open are answered 503; the query running in a
+        # worker is still finished (the lifespan's end waits for it).
+        timeout_graceful_shutdown=settings.shutdown_timeout_s,  # type: ignore[arg-type]
     )
     server = uvicorn.Server(config)
+    warning = exposure_warning(listener.getsockname()[0], token is not None)
+    if warning:
+        print(warning, file=sys.stderr, flush=True)
     print(
         f"relocfw serve: {url_of(listener)} (model {info.file_name}, id {info.model_id}, "
         f"{settings.workers} worker(s), token {'on' if token else 'off'})",
         flush=True,
     )
-    before = signal.signal(signal.SIGTERM, after_drain)
+    before = {stop: signal.signal(stop, after_drain) for stop in STOP_SIGNALS}
     try:
         server.run(sockets=[listener])
     finally:
-        signal.signal(signal.SIGTERM, before)
+        for stop, handler in before.items():
+            signal.signal(stop, handler)
         listener.close()
     print("relocfw serve: stopped", file=sys.stderr, flush=True)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -12,6 +13,16 @@ from relocfw.core.errors import ConfigError
 # 20 MB PNG may announce 30000 x 30000 pixels, and a service decodes many requests
 # at once. 50 MP is well above any robot camera.
 DEFAULT_MAX_PIXELS = 50_000_000
+# A few seconds: a request's headers are a few hundred bytes, and a robot's image (a
+# few MB at most) crosses a slow Wi-Fi link in well under the body's time. A client
+# slower than that holds a connection (and its place) that a real caller needs.
+DEFAULT_HEADER_TIMEOUT_S = 5.0
+DEFAULT_BODY_TIMEOUT_S = 10.0
+# After SIGTERM: long enough for the queue's queries on a CPU (max_pending of a few
+# hundred ms each) and a body still on its way, short enough for a supervisor.
+DEFAULT_SHUTDOWN_TIMEOUT_S = 10.0
+# Far above what max_pending queries need, far below the usual 1024 open files.
+DEFAULT_MAX_CONNECTIONS = 256
 
 
 def whole_number(key: str, value: Any, least: int, most: int | None = None) -> int:
@@ -22,6 +33,15 @@ def whole_number(key: str, value: Any, least: int, most: int | None = None) -> i
         bound = f">= {least}" if most is None else f"in [{least}, {most}]"
         raise ConfigError(f"serve.{key} must be {bound}, got {value}")
     return value
+
+
+def seconds(key: str, value: Any) -> float:
+    """`value` as a finite number of seconds > 0, or a ConfigError naming serve.KEY."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise ConfigError(f"serve.{key} must be a number > 0 (seconds), got {value!r}")
+    if not math.isfinite(value) or value <= 0:
+        raise ConfigError(f"serve.{key} must be a number > 0 (seconds), got {value}")
+    return float(value)
 
 
 @dataclass(frozen=True)
@@ -40,6 +60,14 @@ class ServeSettings:
         max_pixels: the most pixels an image header may announce (400 above it).
         token_file: a file holding the bearer token callers must send; None: no token.
         retry_after_s: the Retry-After a 503 carries.
+        header_timeout_s: the seconds a connection has to send a request's headers
+            (closed after them).
+        body_timeout_s: the seconds a request has to send its whole body once its
+            headers are in (answered 408 and closed after them); its queue place is
+            taken only once the body is in.
+        shutdown_timeout_s: the seconds after SIGTERM (or Ctrl-C) that the requests
+            in flight have to finish; the ones left are answered 503.
+        max_connections: the connections open at once; one more is answered 503.
     """
 
     model: Path
@@ -51,6 +79,10 @@ class ServeSettings:
     max_pixels: int = DEFAULT_MAX_PIXELS
     token_file: Path | None = None
     retry_after_s: int = 1
+    header_timeout_s: float = DEFAULT_HEADER_TIMEOUT_S
+    body_timeout_s: float = DEFAULT_BODY_TIMEOUT_S
+    shutdown_timeout_s: float = DEFAULT_SHUTDOWN_TIMEOUT_S
+    max_connections: int = DEFAULT_MAX_CONNECTIONS
 
     def __post_init__(self) -> None:
         if not str(self.host).strip():
@@ -61,6 +93,9 @@ class ServeSettings:
         whole_number("max_bytes", self.max_bytes, 1)
         whole_number("max_pixels", self.max_pixels, 1)
         whole_number("retry_after_s", self.retry_after_s, 0)
+        whole_number("max_connections", self.max_connections, 1)
+        for key in ("header_timeout_s", "body_timeout_s", "shutdown_timeout_s"):
+            object.__setattr__(self, key, seconds(key, getattr(self, key)))
         if self.max_pending < self.workers:
             raise ConfigError(
                 f"serve.max_pending={self.max_pending} is below serve.workers="
@@ -85,4 +120,8 @@ class ServeSettings:
             max_pixels=serve.max_pixels,
             token_file=Path(str(token)).expanduser() if token else None,
             retry_after_s=serve.retry_after_s,
+            header_timeout_s=serve.header_timeout_s,
+            body_timeout_s=serve.body_timeout_s,
+            shutdown_timeout_s=serve.shutdown_timeout_s,
+            max_connections=serve.max_connections,
         )

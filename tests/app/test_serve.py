@@ -188,6 +188,20 @@ def test_a_bad_request_is_one_4xx_line_and_the_next_good_one_is_answered(
         assert post(client, GOOD_PNG).status_code == 200
 
 
+def test_health_counts_every_refusal_the_service_answers(server):
+    with server.client() as client:
+        before = client.get("/v1/health").json()
+        statuses = [post(client, b"hello, I am text").status_code for _ in range(3)]
+        statuses += [post(client, GOOD_PNG, "text/plain").status_code for _ in range(3)]
+        statuses.append(post(client, GOOD_PNG, fxx=5).status_code)
+        statuses.append(client.get("/v1/nowhere").status_code)
+        assert post(client, GOOD_PNG).status_code == 200
+        after = client.get("/v1/health").json()
+    assert statuses == [400] * 3 + [415] * 3 + [422, 404]
+    assert after["refused"] == before["refused"] + len(statuses)
+    assert after["answered"] == before["answered"] + 1
+
+
 def test_a_path_named_by_the_caller_is_never_read(server, model):
     # The model file's own path as the body, as a field, as a URL: none is read.
     with server.client() as client:

@@ -106,14 +106,15 @@ def test_a_client_that_leaves_while_waiting_costs_no_query(server, closed):
     assert started(closed) == 1  # the abandoned query never ran
 
 
-def test_sigterm_finishes_the_query_in_flight_then_exits_0(model, tmp_path):
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "Ctrl-C"])
+def test_a_stop_finishes_the_query_in_flight_then_exits_0(model, tmp_path, stop):
     gate = tmp_path / "gate"
     gate.mkdir()
     with running(gated_command(model, gate), tmp_path) as server:
         with ThreadPoolExecutor(1) as pool:
             in_flight = pool.submit(localize, server.url)
             wait_for(lambda: started(gate) == 1, what="the query to run")
-            server.process.send_signal(signal.SIGTERM)
+            server.process.send_signal(stop)
             address = urlparse(server.url)
 
             def refuses_connections() -> bool:
@@ -129,4 +130,5 @@ def test_sigterm_finishes_the_query_in_flight_then_exits_0(model, tmp_path):
             answer = in_flight.result(timeout=30)
         assert len(answer.position) == 3
         assert server.process.wait(timeout=60) == 0
-    assert "stopped" in server.log.read_text()
+    log = server.log.read_text()
+    assert "stopped" in log and "interrupted" not in log

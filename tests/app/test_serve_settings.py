@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from relocfw.core.errors import ConfigError
-from relocfw.serve.service import listening_socket
+from relocfw.serve.service import exposure_warning, listening_socket
 from relocfw.serve.settings import ServeSettings
 
 
@@ -23,6 +23,10 @@ from relocfw.serve.settings import ServeSettings
         ({"workers": 4, "max_pending": 2}, r"serve\.max_pending=2 is below serve\.workers=4"),
         ({"max_bytes": True}, r"serve\.max_bytes must be a whole number"),
         ({"host": " "}, r"serve\.host is empty"),
+        ({"body_timeout_s": 0}, r"serve\.body_timeout_s must be a number > 0"),
+        ({"header_timeout_s": float("nan")}, r"serve\.header_timeout_s must be a number > 0"),
+        ({"shutdown_timeout_s": -1.0}, r"serve\.shutdown_timeout_s must be a number > 0"),
+        ({"max_connections": 0}, r"serve\.max_connections must be >= 1"),
     ],
 )
 def test_a_bad_serve_value_names_its_key(changes, words):
@@ -62,3 +66,44 @@ def test_without_a_model_the_command_says_how_to_call_it(tmp_path):
     assert serve_process("--help", cwd=tmp_path).stdout.startswith("usage: relocfw-serve MODEL")
     done = serve_process("serve.port=1", cwd=tmp_path)
     assert done.returncode == 2 and done.stderr.startswith("usage: relocfw-serve MODEL")
+
+
+@pytest.mark.parametrize(
+    "host, exposed",
+    [
+        ("0.0.0.0", True),
+        ("::", True),
+        ("192.168.1.20", True),
+        ("127.0.0.1", False),
+        ("127.0.0.2", False),
+        ("::1", False),
+    ],
+)
+def test_a_public_address_without_a_token_is_warned_in_one_line(host, exposed):
+    warning = exposure_warning(host, token=False)
+    assert (warning is not None) == exposed
+    if exposed:
+        assert warning.startswith(f"warning: serve.host={host} ") and "\n" not in warning
+        assert "serve.token_file" in warning
+    assert exposure_warning(host, token=True) is None
+
+
+def test_max_connections_above_the_open_file_limit_ends_in_one_line(tmp_path):
+    import resource
+
+    def few_open_files() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
+
+    done = subprocess.run(
+        [sys.executable, "-m", "relocfw.app.tasks.serve", str(tmp_path / "absent.relocfw")]
+        + ["serve.port=0", "serve.max_connections=1000"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        preexec_fn=few_open_files,
+    )
+    assert done.returncode == 2, done.stderr[-3000:]
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1, done.stderr[-3000:]
+    assert lines[0].startswith("error: serve.max_connections=1000 ") and "ulimit -n" in lines[0]

@@ -22,6 +22,7 @@ def server(tmp_path_factory):
     folder = tmp_path_factory.mktemp("serve")
     token_file = folder / "token"
     token_file.write_text(TOKEN + "\n")
+    token_file.chmod(0o600)
     model = tiny_model(folder)
     with running(serve_command(model, f"serve.token_file={token_file}"), folder) as found:
         yield found
@@ -43,6 +44,23 @@ def test_without_the_token_localize_and_model_answer_401(server, authorization):
         assert "serve.token_file" in refused.json()["error"]
         assert client.get("/v1/model", headers=headers).status_code == 401
         assert client.get("/v1/health").status_code == 200
+
+
+def test_without_the_token_health_says_only_that_it_is_ready(server):
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        assert client.get("/v1/health").json() == {"status": "ready"}
+        full = client.get("/v1/health", headers={"Authorization": f"Bearer {TOKEN}"}).json()
+    assert full["status"] == "ready" and {"model_id", "pending", "refused"} <= set(full)
+
+
+def test_with_a_token_the_schema_needs_it_and_the_docs_page_is_off(server):
+    with httpx.Client(base_url=server.url, timeout=30) as client:
+        refused = client.get("/openapi.json")
+        assert refused.status_code == 401 and "serve.token_file" in refused.json()["error"]
+        schema = client.get("/openapi.json", headers={"Authorization": f"Bearer {TOKEN}"})
+        assert schema.status_code == 200 and "/v1/localize" in schema.json()["paths"]
+        for page in ("/docs", "/redoc"):
+            assert client.get(page).status_code == 404
 
 
 def test_with_the_token_the_service_answers(server):
@@ -73,8 +91,20 @@ def test_the_token_is_compared_in_constant_time(monkeypatch):
 def test_a_weak_token_file_is_refused_naming_the_key(tmp_path, text, words):
     path = tmp_path / "token"
     path.write_text(text)
+    path.chmod(0o600)
     with pytest.raises(ConfigError, match=rf"^serve\.token_file=.*{words}"):
         BearerToken.from_file(path)
+
+
+@pytest.mark.parametrize("mode", [0o644, 0o640, 0o604, 0o660])
+def test_a_token_file_other_users_can_read_is_refused_saying_chmod_600(tmp_path, mode):
+    path = tmp_path / "token"
+    path.write_text(TOKEN)
+    path.chmod(mode)
+    with pytest.raises(ConfigError, match=rf"^serve\.token_file={path}: .*chmod 600 {path}"):
+        BearerToken.from_file(path)
+    path.chmod(0o600)
+    assert BearerToken.from_file(path).allows(f"Bearer {TOKEN}")
 
 
 def test_a_missing_token_file_is_refused_naming_the_key(tmp_path):

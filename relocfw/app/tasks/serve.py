@@ -68,6 +68,7 @@ def load_for_serve(config: dict[str, Any], device: str) -> Relocalizer:
 def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     settings = ServeSettings.from_config(cfg.serve)
     service = service_module()
+    service.check_open_files(settings)  # before the model's seconds of loading
     config = OmegaConf.to_container(cfg, resolve=True, enum_to_str=True)
     loader = functools.partial(load_for_serve, config, str(device))
     service.run_service(settings, loader(), loader)
@@ -93,6 +94,8 @@ def main(arguments: list[str] | None = None) -> None:
         print(f"error: {one_line(error)}", file=sys.stderr)
         sys.exit(2)
     except KeyboardInterrupt:
+        # Ctrl-C before the service was up (while loading): nothing was served. Once
+        # it serves, Ctrl-C drains as SIGTERM does and exits 0 (relocfw.serve.service).
         print("interrupted", file=sys.stderr)
         sys.exit(130)
 

@@ -1,0 +1,113 @@
+"""Connections, below the application: a header timeout and a cap on open connections
+(serve.header_timeout_s, serve.max_connections), and the open-file limit they need.
+
+uvicorn's h11 protocol times out idle keep-alive connections only: a connection that
+sends half its headers (or nothing) is held for ever, and 1100 of them at `ulimit -n
+1024` stop the service and flood the log with `Too many open files`. uvicorn's own
+cap (limit_concurrency) answers a plain-text 503. `guarded_protocol` is h11's
+protocol with both: a connection whose request headers are not in within the header
+timeout is closed, and one opened above the cap is given the service's JSON 503 for
+its request instead of the application. Connections far above the cap (more than
+REFUSING above it) are closed at once, unanswered, so the open files stay bounded
+whatever the clients do; `reserve_open_files` makes sure the bound is below the
+process's limit before the service starts.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import resource
+from typing import Any
+
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+from relocfw.core.errors import ConfigError
+
+# Connections over the cap that are still read and answered 503 (each for at most the
+# header timeout); beyond them a new connection is closed at once.
+REFUSING = 64
+# The listening socket's backlog, which is also the most connections asyncio accepts in
+# one turn of the loop before their protocols can close them: about three turns' worth
+# may be open beyond the cap at once. (uvicorn's default of 2048 also lets one turn log
+# 2048 tracebacks when accept() fails with `Too many open files`.)
+ACCEPT_BACKLOG = 64
+# Files the service holds besides its connections: the model, the listening socket,
+# torch's and the worker processes' pipes, logs. Measured about 30; kept generous.
+OTHER_FILES = 128
+
+
+def open_files_needed(max_connections: int) -> int:
+    """The open files a service with `max_connections` may hold at most."""
+    return max_connections + REFUSING + 3 * ACCEPT_BACKLOG + OTHER_FILES
+
+
+def reserve_open_files(max_connections: int) -> None:
+    """Make sure this process may open the files `max_connections` need: raise the
+    soft limit (ulimit -n) up to the hard one where it is lower, as nginx's
+    worker_rlimit_nofile does.
+
+    Raises:
+        ConfigError: naming serve.max_connections when even the hard limit is too low.
+    """
+    needed = open_files_needed(max_connections)
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= needed:
+        return
+    if hard != resource.RLIM_INFINITY and hard < needed:
+        most = max(0, hard - (needed - max_connections))
+        raise ConfigError(
+            f"serve.max_connections={max_connections} needs up to {needed} open files, "
+            f"above this process's limit of {hard} (ulimit -n): lower serve.max_connections "
+            f"to {most} or less, or raise the limit (ulimit -n {needed})"
+        )
+    resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+
+
+def guarded_protocol(
+    header_timeout_s: float, max_connections: int, over_capacity: Any
+) -> type[H11Protocol]:
+    """uvicorn's h11 protocol with a header timeout and a connection cap; connections
+    over the cap run the ASGI app `over_capacity` (a JSON 503) instead of the service."""
+
+    class GuardedProtocol(H11Protocol):
+        header_timer: asyncio.TimerHandle | None = None
+
+        def connection_made(self, transport: asyncio.BaseTransport) -> None:
+            super().connection_made(transport)  # type: ignore[arg-type]
+            open_now = len(self.connections)
+            if open_now > max_connections + REFUSING:
+                transport.abort()  # type: ignore[attr-defined]
+                return
+            if open_now > max_connections:
+                self.app = over_capacity
+            self.wait_for_headers()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            if not self.transport.is_closing():
+                self.wait_for_headers()  # the next request on this connection
+
+        def connection_lost(self, exc: Exception | None) -> None:
+            self.stop_waiting()
+            super().connection_lost(exc)
+
+        def wait_for_headers(self) -> None:
+            self.stop_waiting()
+            self.header_timer = self.loop.call_later(header_timeout_s, self.headers_overdue)
+
+        def stop_waiting(self) -> None:
+            if self.header_timer is not None:
+                self.header_timer.cancel()
+                self.header_timer = None
+
+        def headers_overdue(self) -> None:
+            """Close the connection if no request's head came since it opened or since
+            its last answer (a request whose head is in has the application's body
+            timeout instead). Not logged: a line each would let a flood of such
+            clients flood the log."""
+            self.header_timer = None
+            between_requests = self.cycle is None or self.cycle.response_complete
+            if between_requests and not self.transport.is_closing():
+                self.transport.close()
+
+    return GuardedProtocol
