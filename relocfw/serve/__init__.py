@@ -13,8 +13,10 @@ The parts, one per module:
     queue      the bounded queue in front of the workers (serve.max_pending)
     answers    a Localization and the model as JSON
     app        the FastAPI application over all of them
-    service    loading, serving, draining on SIGTERM
+    guard      around the application: refusals counted, requests cut off by a stop
+    connections  below it: header timeout, connection cap, open files
+    service    loading, serving, draining on SIGTERM and Ctrl-C
 
-FastAPI and uvicorn are imported by `app` and `service` only: `pip install
-"relocfw[serve]"`.
+FastAPI, Starlette and uvicorn are imported by `app`, `guard`, `connections` and
+`service` only: `pip install "relocfw[serve]"`.
 """
