@@ -30,6 +30,8 @@ from relocfw.model.onnx_engine import (
     STATIC_MODES,
     EngineOptions,
     EngineUnavailableError,
+    adopt_shipped_graphs,
+    graph_home,
     graph_path,
     onnx_engine,
 )
@@ -124,7 +126,10 @@ def on_engine(
 
     Args:
         owner: the checkpoint or model file the weights come from: the engine's graphs
-            are cached beside it.
+            are cached beside a checkpoint (it lies in cache_dir), and for a model file
+            in cache_dir/graphs/, keyed by its content (`graph_home`), never beside it;
+            graphs kept beside a model file (task=relocalize's static int8 ones) are
+            copied there first.
         calibration: map images, for onnx.int8=static / static_8bit.
 
     With engine=auto on a CPU the graphs are exported or reused; when that is not
@@ -145,12 +150,15 @@ def on_engine(
         raise ConfigError(f"{error}{origin}") from error
     if engine == "torch":
         return relocalizer
+    cache_dir = cfg.get("cache_dir")
+    home = graph_home(owner, Path(str(cache_dir)) if cache_dir else None)
+    adopt_shipped_graphs(owner, home)
     try:
         if engine == "ncnn":
-            backbone = ncnn_engine(relocalizer.backbone, owner, options, say=warn)
+            backbone = ncnn_engine(relocalizer.backbone, home, options, say=warn)
         else:
             with quiet_quantisation():
-                backbone = onnx_engine(relocalizer.backbone, owner, options, calibration, say=warn)
+                backbone = onnx_engine(relocalizer.backbone, home, options, calibration, say=warn)
     except EngineUnavailableError as error:
         if name_of(cfg.engine) != "auto" or options.int8 != "none":
             asked = f"engine={engine}" if options.int8 == "none" else f"onnx.int8={options.int8}"

@@ -1,5 +1,5 @@
-"""engine=onnx: a trained backbone's graphs, exported once per checkpoint and cached
-beside it, opened as an OnnxBackbone (relocfw.model.onnx_backbone).
+"""engine=onnx: a trained backbone's graphs, exported once per checkpoint or model file
+and cached, opened as an OnnxBackbone (relocfw.model.onnx_backbone).
 
 `onnx_engine(backbone, owner, options)` exports (or reuses) the graphs the backbone's
 queries need (relocfw.model.onnx_graphs.kinds_needed) as `OWNER-<kind>.onnx` beside
@@ -8,7 +8,9 @@ random images each time it is opened (a file beside a model comes from wherever 
 model came from: its metadata is its writer's word, its answers are checked), and
 rebuilds a float graph that is unreadable, stale or wrong. When onnxruntime is
 missing or a graph cannot be made to match torch it raises EngineUnavailableError
-with the reason; the CLI then runs torch and says why in one line.
+with the reason; the CLI then runs torch and says why in one line. The CLI names
+the owner by `graph_home`: a checkpoint (in the cache) itself, a model file by its
+content under cache_dir/graphs/, so no graph is ever written beside a model file.
 
 Int8 (`EngineOptions.int8`): onnxruntime's quantisation of the float graphs, written
 as `OWNER-<kind>.int8-<mode>.onnx`, tied to the float graph they were made from.
@@ -27,6 +29,7 @@ answer included, runs the float32 graphs.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import tempfile
@@ -53,6 +56,7 @@ from relocfw.model.onnx_graphs import (
     FORMAT_KEY,
     GRAPH_FORMAT,
     KIND_KEY,
+    KINDS,
     MAPS_OUTPUT,
     GraphKind,
     checked_answers,
@@ -66,6 +70,7 @@ from relocfw.model.onnx_graphs import (
 
 INT8_MODES = ("none", "dynamic", "static", "static_8bit")
 STATIC_MODES = ("static", "static_8bit")  # calibrated on map images
+GRAPHS_FOLDER = "graphs"  # cache_dir/graphs/<model digest>/: a model file's graphs
 INT8_KEY = "relocfw.int8"
 RECIPE_KEY = "relocfw.int8_recipe"
 # How static graphs are quantised; a cached graph of another recipe is rebuilt. 7-bit
@@ -182,6 +187,52 @@ def graph_path(owner: Path, kind: GraphKind, int8: str = "none") -> Path:
     # "-", not ".": training removes its checkpoint's stale temporaries by the prefix
     # ".KEY.pt.", which would match a graph's temporary named ".KEY.pt.full.onnx.*".
     return owner.with_name(f"{owner.name}-{kind.name}{suffix}.onnx")
+
+
+def file_digest(path: Path) -> str:
+    """The first 16 hex digits of the SHA-256 of a file's bytes."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()[:16]
+
+
+def graph_home(owner: Path, cache_dir: Path | None) -> Path:
+    """The name the graphs of checkpoint / model file `owner` are cached under
+    (`graph_path(graph_home(...), kind)`).
+
+    `owner` itself, graphs beside it, where no cache folder is given or `owner` lies
+    in it (a checkpoint). Anything else (a model file) is keyed by its content:
+    `cache_dir/graphs/<16 hex digits of its SHA-256>/<its name>`, so the model's own
+    folder, which a robot may not be allowed to write, gets no file, and a model file
+    replaced by another of the same name gets graphs of its own.
+    """
+    owner = Path(owner)
+    if cache_dir is None:
+        return owner
+    cache = Path(cache_dir).expanduser().resolve()
+    if owner.resolve().is_relative_to(cache):
+        return owner
+    home = cache / GRAPHS_FOLDER / file_digest(owner)
+    # Unwritable: the graphs are then kept in memory, with one note (`rebuilt`).
+    with contextlib.suppress(OSError):
+        home.mkdir(parents=True, exist_ok=True)
+    return home / owner.name
+
+
+def adopt_shipped_graphs(owner: Path, home: Path) -> None:
+    """Copy into `home` the graphs kept beside `owner` that it lacks: the static int8
+    graphs task=relocalize keeps beside a model file (a robot has no map images to
+    remake them). Each is checked when opened, as every cached graph is."""
+    if Path(owner) == Path(home):
+        return
+    for kind in KINDS.values():
+        for mode in INT8_MODES:
+            shipped, cached_path = graph_path(owner, kind, mode), graph_path(home, kind, mode)
+            if shipped.is_file() and not cached_path.exists():
+                with contextlib.suppress(OSError):
+                    write_graph(shipped.read_bytes(), cached_path)
 
 
 def onnx_engine(
@@ -388,7 +439,7 @@ def int8_graph(
         raise ConfigError(
             f"onnx.int8={mode} calibrates on map images, and none are at hand here to "
             f"make {path}{f' ({stale})' if stale else ''}: run task=relocalize with "
-            f"onnx.int8={mode} (it keeps the graphs beside the model file it writes), "
+            f"onnx.int8={mode} (it keeps the static graphs beside the model file it writes), "
             "or use onnx.int8=none"
         )
 

@@ -1,4 +1,5 @@
-"""The inference engine's ONNX graphs of a backbone, exported once and cached beside it.
+"""The inference engine's ONNX graphs of a backbone, exported once and cached
+(relocfw.model.onnx_engine.graph_home says where).
 
 `engine=onnx` (relocfw.model.onnx_engine) runs every network pass of a query with
 onnxruntime. A query needs up to three parts of the network, each its own graph:

@@ -25,7 +25,12 @@ from relocfw.model import onnx_export
 from relocfw.model.model_file import load_model, save_model
 from relocfw.model.ncnn_engine import ncnn_installed
 from relocfw.model.onnx_backbone import OnnxBackbone
-from relocfw.model.onnx_engine import EngineOptions, EngineUnavailableError, onnx_engine
+from relocfw.model.onnx_engine import (
+    EngineOptions,
+    EngineUnavailableError,
+    file_digest,
+    onnx_engine,
+)
 from relocfw.model.onnx_export import export_onnx, onnx_path
 from relocfw.plugins.centre_crop import CentreCrop
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
@@ -354,9 +359,11 @@ def test_cli_export_then_localize_on_either_engine(trained_model):
             for name in ("torch", engine)
         ]
         assert crops[0] == crops[1], engine
-    # The engine's graphs are cached beside the model file; the robot's export is not
-    # what it runs, and stays as task=export wrote it.
-    assert Path(f"{model}-full.onnx").is_file() and Path(f"{model}-maps.onnx").is_file()
+    # The engine's graphs are cached by the model file's content, not beside it; the
+    # robot's export is not what it runs, and stays as task=export wrote it.
+    cached = {p.name for p in (home / "cache" / "graphs" / file_digest(model)).iterdir()}
+    assert {"model.relocfw-full.onnx", "model.relocfw-maps.onnx"} <= cached
+    assert not list(model.parent.glob("model.relocfw-*"))
     assert Path(f"{model}.onnx").read_bytes() == robots
 
 
@@ -374,12 +381,10 @@ def test_cli_localize_backend_is_read_as_engine_and_needs_no_export(trained_mode
     ]
     assert np.all(np.isfinite(np.loadtxt(tmp_path / "run" / "poses.txt")))
     assert len(localization_rows(tmp_path / "run")) == 4
-    assert sorted(p.name for p in tmp_path.iterdir()) == [
-        "model.relocfw",
-        "model.relocfw-full.onnx",
-        "model.relocfw-maps.onnx",
-        "run",
-    ]
+    # The model file's folder gets no graph: they are cached by its content.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.relocfw", "run"]
+    cached = {p.name for p in (home / "cache" / "graphs" / file_digest(lone)).iterdir()}
+    assert {"model.relocfw-full.onnx", "model.relocfw-maps.onnx"} <= cached
 
 
 def test_cli_localize_with_an_int8_scout(trained_model, tmp_path):

@@ -6,6 +6,7 @@ The graphs of each tiny network are exported once for the module (`built`); test
 that damage a cache work on copies of them.
 """
 
+import hashlib
 import logging
 import shutil
 import sys
@@ -825,3 +826,60 @@ def assert_pose_near_float32(answer, torch_way: Relocalizer, image: np.ndarray) 
     assert position < INT8_POSITION_DEVIATION
     angle = orientation_error_deg(answer.pose.quaternion, exact.quaternions[0])
     assert angle < INT8_ORIENTATION_DEVIATION_DEG
+
+
+def saved_model(net: Built, images: Images, path: Path) -> Path:
+    """A model file of `net` (a centre crop over an exhaustive map) at `path`."""
+    relocalizer = Relocalizer(net.backbone, ExhaustiveIndex(), CentreCrop())
+    relocalizer.fit(images.map)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return save_model(path, relocalizer, {"backbone": NETWORK}, {})
+
+
+def test_a_model_files_graphs_are_cached_by_its_content_and_never_beside_it(
+    built, images, tmp_path, monkeypatch, capsys
+):
+    """The model file's folder (a robot's may be read-only) gets no file; the graphs go
+    to cache_dir/graphs/<its SHA-256>/, and a second load reuses them, exporting none."""
+    net = built("head")
+    model = saved_model(net, images, tmp_path / "robot" / "model.relocfw")
+    cfg = OmegaConf.merge(engine_config(quiet=True), {"cache_dir": str(tmp_path / "cache")})
+    first = on_engine(cfg, load_model(model), model, torch.device("cpu"))
+    assert isinstance(first.backbone, OnnxBackbone)
+    assert sorted(p.name for p in model.parent.iterdir()) == ["model.relocfw"]
+    digest = hashlib.sha256(model.read_bytes()).hexdigest()[:16]
+    home = tmp_path / "cache" / "graphs" / digest
+    graphs = ["model.relocfw-full.onnx", "model.relocfw-maps.onnx"]  # "head": maps too
+    assert sorted(p.name for p in home.iterdir()) == graphs
+    written = (home / "model.relocfw-full.onnx").stat().st_mtime_ns
+
+    def no_export(*args, **kwargs):
+        raise AssertionError("the cached graph was exported again")
+
+    monkeypatch.setattr(engine_module, "graph_bytes", no_export)
+    again = on_engine(cfg, load_model(model), model, torch.device("cpu"))
+    assert isinstance(again.backbone, OnnxBackbone)
+    assert (home / "model.relocfw-full.onnx").stat().st_mtime_ns == written
+    assert capsys.readouterr().err == ""
+    # Another model file (other content, same name) gets graphs of its own.
+    monkeypatch.undo()
+    other = saved_model(built("head", seed=1), images, tmp_path / "robot2" / "model.relocfw")
+    on_engine(cfg, load_model(other), other, torch.device("cpu"))
+    assert len(list((tmp_path / "cache" / "graphs").iterdir())) == 2
+
+
+def test_graphs_shipped_beside_a_model_file_are_used_from_the_cache(
+    built, images, tmp_path, monkeypatch
+):
+    """Static int8 graphs kept beside a model file by task=relocalize (they cannot be
+    remade without map images) serve a later run from the cache, with no calibration."""
+    monkeypatch.setattr(cpu_flags, "int8_saturation_reason", lambda: None)
+    net = built("head")
+    model = saved_model(net, images, tmp_path / "robot" / "model.relocfw")
+    options = EngineOptions(threads=1, int8="static")
+    onnx_engine(net.backbone, model, options, images.map, say=pytest.fail)  # beside it
+    shipped = sorted(p.name for p in model.parent.iterdir())
+    cfg = OmegaConf.merge(engine_config(int8="static"), {"cache_dir": str(tmp_path / "cache")})
+    engine = on_engine(cfg, load_model(model), model, torch.device("cpu"))  # none at hand
+    assert engine.backbone.int8 == "static"
+    assert sorted(p.name for p in model.parent.iterdir()) == shipped

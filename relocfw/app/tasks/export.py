@@ -37,5 +37,5 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     print(
         f"localize with it: relocfw task=localize localize.model={model} localize.images=... "
         "(engine=onnx, the default on a CPU, runs the same network from graphs it caches "
-        "beside the model file)"
+        "in cache_dir/graphs/, keyed by the model file's content)"
     )

@@ -2,7 +2,8 @@
 
 The model file brings its network, map, crop search and query options; each query.*
 value that is set (not null) replaces the file's. The network runs on the configured
-engine (relocfw.app.engines), its graphs cached beside the model file.
+engine (relocfw.app.engines), its graphs cached in cache_dir/graphs/ by the model
+file's content (nothing is written beside the model file).
 
 `localize.images` names image files (a file, folder or glob), a video or a ROS bag
 (with `localize.topic`); relocfw.data.streams reads each as one stream of frames,
@@ -203,7 +204,7 @@ def localize_images(
 
 def load_for_localize(cfg: DictConfig, device: torch.device) -> Relocalizer:
     """The model file's Relocalizer with the query.* values that are set, its network
-    run by the configured engine (graphs cached beside the model file)."""
+    run by the configured engine (graphs cached by the model file's content)."""
     model = model_file(cfg.localize.model, "localize.model")
     try:
         relocalizer = load_model(model, device, query_values(cfg))
