@@ -17,7 +17,9 @@ and is rewritten. A folder
 that opens but does not hold the map it is named after (copied over, or left by
 code that wrote other rows) is rewritten too: its image names and per-image row
 counts are compared with the StructureMap, which costs nothing beside building
-that map.
+that map, and every file's bytes with the SHA-256 map.json records of them
+(compact_map.content_faults: an array rewritten at the same size is noticed; it reads
+the whole folder once, 32 ms for 400 images of 607 points, about 0.1 s per 100 MB).
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from relocfw.core.errors import DataError
-from relocfw.structure.compact_map import CompactMap
+from relocfw.structure.compact_map import CompactMap, content_faults
 from relocfw.structure.compact_writer import save_compact_map
 from relocfw.structure.descriptor_codes import grid_codec
 from relocfw.structure.structure_map import StructureMap
@@ -60,11 +62,12 @@ def cached_compact_map(
     if folder.exists():
         try:
             compact = CompactMap.open(folder)
-            if holds(compact, structure):
+            faults = content_faults(compact)
+            if not faults and holds(compact, structure):
                 if not quiet:
                     print(f"map structure: reused compact {folder}", file=sys.stderr)
                 return compact
-            reason = "holds another map"
+            reason = faults[0] if faults else "holds another map"
         except DataError as error:
             reason = str(error)
         # Printed even when quiet, as cached_structure_map does: a cache entry that is

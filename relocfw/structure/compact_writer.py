@@ -26,6 +26,7 @@ points moved into their image's camera frame, descriptors coded with the codec.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import shutil
@@ -48,8 +49,10 @@ from relocfw.core.values import Pose
 from relocfw.structure.compact_map import (
     COMPACT_FORMAT,
     COMPACT_KIND,
+    DIGESTS,
     META_FILE,
     POINT_DTYPES,
+    file_digest,
 )
 from relocfw.structure.descriptor_codes import DescriptorCodec, grid_codec
 from relocfw.structure.structure_map import SOURCES, StructureMap
@@ -179,10 +182,12 @@ class CompactMapWriter:
         if self.added != len(self.counts):
             self.abort()
             raise DataError(f"{self.added} images added, counts has {len(self.counts)}")
-        for stream in self.streams.values():
+        digests = {}
+        for name, stream in self.streams.items():
             stream.flush()
             os.fsync(stream.fileno())
             stream.close()
+            digests[f"{name}.npy"] = stream.digest.hexdigest()
         offsets = np.concatenate([[0], np.cumsum(self.counts)]).astype(np.int64)
         arrays = {
             "offsets": offsets,
@@ -194,6 +199,7 @@ class CompactMapWriter:
             arrays["centres"] = self.codec.centres
         for name, array in arrays.items():
             np.save(self.staging / f"{name}.npy", array, allow_pickle=False)
+            digests[f"{name}.npy"] = file_digest(self.staging / f"{name}.npy")
         meta = {
             "kind": COMPACT_KIND,
             "format": COMPACT_FORMAT,
@@ -204,6 +210,7 @@ class CompactMapWriter:
             "code_bytes": self.codec.code_bytes,
             "point_dtype": self.point_dtype.name,
             "file_bytes": {p.name: p.stat().st_size for p in sorted(self.staging.glob("*.npy"))},
+            DIGESTS: dict(sorted(digests.items())),
         }
         (self.staging / META_FILE).write_text(json.dumps(meta, indent=1) + "\n")
         self.publish()
@@ -256,10 +263,32 @@ def publish_version(staging: Path, folder: Path) -> None:
             shutil.rmtree(other, ignore_errors=True)
 
 
-def started_array(path: Path, dtype: np.dtype, shape: tuple[int, ...]) -> IO[bytes]:
+class DigestedStream:
+    """A file open for writing that digests every byte written to it (`digest`), so
+    a large array's digest costs no second read."""
+
+    def __init__(self, path: Path) -> None:
+        self.stream: IO[bytes] = open(path, "wb")  # noqa: SIM115 (closed by the writer)
+        self.digest = hashlib.sha256()
+
+    def write(self, data: bytes) -> int:
+        self.digest.update(data)
+        return self.stream.write(data)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def fileno(self) -> int:
+        return self.stream.fileno()
+
+    def close(self) -> None:
+        self.stream.close()
+
+
+def started_array(path: Path, dtype: np.dtype, shape: tuple[int, ...]) -> DigestedStream:
     """A file holding the .npy header of a C-ordered array of `shape`, open for its
     rows to be appended."""
-    stream = open(path, "wb")  # noqa: SIM115 (closed by the writer)
+    stream = DigestedStream(path)
     header = {
         "descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
         "fortran_order": False,
