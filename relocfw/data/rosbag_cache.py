@@ -10,8 +10,10 @@ reads. PNG is lossless, so the pixels are the bag's (a CompressedImage's as deco
 The folder is named by a hash of the bag's bytes and the topics read, so a second run
 reads no bag, and an edited bag or another topic gets its own folder. It is written
 into a staging folder and renamed into place, so an interrupted extraction is never
-trusted. Every image of the topic is extracted (not only those with a pose): then the
-pose options (tolerance, time ranges, a trajectory file) can change without a re-read.
+trusted; one a killed run left is removed by the next extraction into the same
+cache (relocfw.core.atomic_files.remove_stale_folders). Every image of the topic is
+extracted (not only those with a pose): then the pose options (tolerance, time
+ranges, a trajectory file) can change without a re-read.
 """
 
 from __future__ import annotations
@@ -19,7 +21,6 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from relocfw.core.atomic_files import publish_folder
+from relocfw.core.atomic_files import (
+    publish_folder,
+    release_folder,
+    remove_stale_folders,
+    staging_folder,
+)
 from relocfw.core.errors import DataError
 from relocfw.core.progress import Progress
 from relocfw.data.depth import write_depth
@@ -51,6 +57,8 @@ from relocfw.data.rosbag_source import (
 EXTRACTION_VERSION = 1
 POSES_FILE = "poses.txt"
 HASH_BLOCK = 1 << 23
+# How an extraction's staging folder is named (then a random part), beside its place.
+STAGING_PREFIX = ".extracting-"
 
 
 @dataclass(frozen=True)
@@ -113,7 +121,10 @@ def extracted_bag(
     if (folder / "bag.json").is_file():
         return folder
     folder.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".extracting-", dir=folder.parent))
+    # A killed extraction cannot clean up: its folder goes here, once its lock is free
+    # (a live one, of another run, holds its lock and stays).
+    remove_stale_folders(folder.parent, STAGING_PREFIX)
+    staging, lock = staging_folder(folder.parent, STAGING_PREFIX)
     try:
         with Bag(path) as bag:
             summary = Extraction(bag, topics, staging, on_error).run(quiet)
@@ -121,6 +132,7 @@ def extracted_bag(
         publish_folder(staging, folder, "bag.json")
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+        release_folder(lock)
     return folder
 
 

@@ -229,7 +229,8 @@ def bag_frames(path: Path, topic: str, key: str = "localize.topic") -> Iterator[
     """The colour images of one topic of a bag, in bag order, with their own timestamps.
 
     Each frame's timestamp is its header stamp (the bag time where the stamp is zero)
-    as seconds with 9 decimals; its name is that timestamp. A message that does not
+    as seconds with 9 decimals; its name is that timestamp (`<stamp>_<n>` for the n-th
+    frame of a repeated stamp). A message that does not
     decode is a frame with `error` set and no image, so a stream goes on past it.
 
     Args:
@@ -253,16 +254,28 @@ def bag_frames(path: Path, topic: str, key: str = "localize.topic") -> Iterator[
 
 
 def topic_frames(bag: Bag, topic: Topic) -> Iterator[StreamFrame]:
-    """bag_frames' frames of an open bag's checked topic; the bag is closed at the end."""
+    """bag_frames' frames of an open bag's checked topic; the bag is closed at the end.
+
+    A frame's name is its stamp; a later frame with a stamp already seen (a driver
+    that repeats one) is named `<stamp>_<n>`, its n-th, so every answer names its own
+    frame. Its timestamp stays the stamp.
+    """
+    seen: dict[str, int] = {}
+
+    def named(stamp: str) -> str:
+        seen[stamp] = seen.get(stamp, 0) + 1
+        return stamp if seen[stamp] == 1 else f"{stamp}_{seen[stamp]}"
+
     with bag:
         for _, bag_ns, message in bag.messages([topic.name]):
             if isinstance(message, Exception):
-                yield StreamFrame(seconds_text(bag_ns), seconds_text(bag_ns), None, str(message))
+                stamp = seconds_text(bag_ns)
+                yield StreamFrame(named(stamp), stamp, None, str(message))
                 continue
             stamp = seconds_text(header_stamp(message, bag_ns))
             try:
                 image = colour_image(message, topic.msgtype, topic.name)
             except DataError as error:
-                yield StreamFrame(stamp, stamp, None, str(error))
+                yield StreamFrame(named(stamp), stamp, None, str(error))
                 continue
-            yield StreamFrame(stamp, stamp, image, None)
+            yield StreamFrame(named(stamp), stamp, image, None)
