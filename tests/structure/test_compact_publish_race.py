@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import time
 import traceback
 
 import numpy as np
@@ -68,3 +69,28 @@ def test_two_writers_and_a_reader_race_without_a_fault(depth_structure, tmp_path
     assert len(compact) == len(depth_structure)
     leftovers = [p.name for p in tmp_path.iterdir() if p.name != "map"]
     assert len(leftovers) <= 1 and all(folder.resolve().name == n for n in leftovers), leftovers
+
+
+def test_a_killed_writers_staging_folder_is_cleared_by_the_next_writer(depth_structure, tmp_path):
+    killed = tmp_path / ".map.staging-killed"
+    killed.mkdir()
+    (killed / "codes.npy").write_bytes(b"\0" * 1000)
+    past = time.time() - 2 * 86400
+    os.utime(killed, (past, past))
+    save_compact_map(depth_structure, tmp_path / "map")
+    assert not killed.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
+        ["map", (tmp_path / "map").resolve().name]
+    )
+
+
+def test_a_map_an_older_relocfw_wrote_as_a_folder_is_replaced(depth_structure, tmp_path):
+    folder = tmp_path / "map"
+    save_compact_map(depth_structure, folder)
+    version = folder.resolve()
+    folder.unlink()
+    version.rename(folder)  # the plain folder an older relocfw published
+    assert len(CompactMap.open(folder)) == len(depth_structure)
+    save_compact_map(depth_structure, folder, None, "float32")
+    assert folder.is_symlink() and CompactMap.open(folder).points.dtype == np.float32
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["map", folder.resolve().name])
