@@ -17,7 +17,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -102,9 +102,12 @@ def first_line(process: subprocess.Popen, seconds: float) -> str:
         return ""
 
 
-def start_server(command: list[str], folder: Path) -> Server:
+def start_server(
+    command: list[str], folder: Path, preexec_fn: Callable[[], None] | None = None
+) -> Server:
     """Start a service (`command` ends with its overrides) on a free port (serve.port=0:
-    it prints the URL it listens on) and wait until it answers /v1/health."""
+    it prints the URL it listens on) and wait until it answers /v1/health.
+    `preexec_fn` runs in the child before the service (e.g. to lower its limits)."""
     log = folder / "server.log"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     with open(log, "w") as errors:
@@ -118,6 +121,7 @@ def start_server(command: list[str], folder: Path) -> Server:
             # Its own process group: stopping it stops its worker processes too
             # (serve.workers > 1), which would otherwise outlive the test.
             start_new_session=True,
+            preexec_fn=preexec_fn,
         )
     line = first_line(process, START_SECONDS)
     if not line.startswith("relocfw serve: http://"):

@@ -18,7 +18,15 @@ from urllib.parse import urlparse
 import httpx
 import pytest
 
-from tests.app.test_serve_helpers import pixels, png_of, running, serve_command, tiny_model
+from tests.app.test_serve_helpers import (
+    pixels,
+    png_of,
+    running,
+    serve_command,
+    start_server,
+    tiny_model,
+)
+from tests.app.test_serve_helpers import stop as stop_service
 
 IMAGE = png_of(pixels(1))
 SILENT_BODY = (
@@ -142,6 +150,41 @@ def test_connections_over_the_cap_are_refused_503_naming_the_key(impatient):
         time.sleep(2.0)
         assert httpx.get(f"{impatient.url}/v1/health", timeout=5).status_code == 200
     assert post_image(impatient.url).status_code == 200
+
+
+def test_a_flood_of_header_less_connections_neither_stops_the_service_nor_its_log(model, tmp_path):
+    """The review's case: 1100 connections that send nothing, at `ulimit -n 1024`."""
+    import resource
+
+    def open_files_1024() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (1024, 1024))
+
+    service = start_server(serve_command(model), tmp_path, preexec_fn=open_files_1024)
+    sockets = []
+    try:
+        for _ in range(1100):  # all at once: connect without waiting for each
+            connection = socket.socket()
+            connection.setblocking(False)
+            connection.connect_ex(address_of(service.url))
+            sockets.append(connection)
+        time.sleep(1.0)
+        # The header timeout closes them as they come (the kernel retries the ones
+        # not yet accepted); the service answers again within seconds.
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            with contextlib.suppress(httpx.TransportError):
+                if httpx.get(f"{service.url}/v1/health", timeout=5).status_code == 200:
+                    break
+            time.sleep(0.5)
+        assert post_image(service.url).status_code == 200
+    finally:
+        for connection in sockets:
+            connection.close()
+        stop_service(service.process)
+        service.process.stdout.close()
+    log = service.log.read_text()
+    assert "Too many open files" not in log, log[-3000:]
+    assert len(log.splitlines()) < 20, log[-3000:]
 
 
 def test_a_client_that_leaves_mid_body_is_one_line_in_the_log(server):
