@@ -101,6 +101,8 @@ class QueryConfig:
     crop_samples: Optional[int] = None  # noqa: UP045
     sample_seed: Optional[int] = None  # noqa: UP045
     queries_at_once: Optional[int] = None  # noqa: UP045
+    max_aspect: Optional[float] = None  # noqa: UP045
+    max_candidates: Optional[int] = None  # noqa: UP045
 
 
 class OnError(Enum):

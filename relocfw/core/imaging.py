@@ -62,7 +62,7 @@ def read_rgb(path: Path, max_aspect: float = MAX_ASPECT) -> np.ndarray:
         raise DataError(out_of_memory(str(path), "decoding it")) from error
     if image is None:
         raise DataError(f"cannot decode image (corrupt or not an image): {path}")
-    check_aspect(image.shape[1], image.shape[0], str(path), max_aspect)
+    check_aspect(image.shape[1], image.shape[0], f"{path} is", max_aspect)
     return np.ascontiguousarray(image[:, :, ::-1])
 
 
@@ -98,21 +98,24 @@ def check_header(
             f"{name}: its header announces {width} x {height} pixels, more than the "
             f"{MAX_IMAGE_PIXELS} relocfw decodes (a corrupt header, or scale the image down)"
         )
-    check_aspect(width, height, name, max_aspect, "its header announces")
+    check_aspect(width, height, f"{name}: its header announces", max_aspect)
     return header
 
 
-def check_aspect(
-    width: int, height: int, name: str, max_aspect: float = MAX_ASPECT, verb: str = "is"
-) -> None:
+def check_aspect(width: int, height: int, what: str, max_aspect: float = MAX_ASPECT) -> None:
     """Refuse an image whose long side is more than `max_aspect` times its short side
-    (query.max_aspect): its strip and its crop searches grow with that ratio."""
+    (query.max_aspect): its strip and its crop searches grow with that ratio.
+
+    Args:
+        what: the start of the message, naming the image: "x.png is", "x.png: its
+            header announces".
+    """
     long, short = max(width, height), min(width, height)
     if long > max_aspect * short:
         raise DataError(
-            f"{name}: {verb} {width} x {height} pixels, its long side "
-            f"{long / max(short, 1):.4g} times its short side, more than "
-            f"query.max_aspect={max_aspect:g} allows (crop the image, or raise query.max_aspect)"
+            f"{what} {width} x {height} pixels, its long side {long / max(short, 1):.4g} "
+            f"times its short side, more than query.max_aspect={max_aspect:g} allows "
+            "(crop the image, or raise query.max_aspect)"
         )
 
 
@@ -213,8 +216,15 @@ class Strip:
             max(self.side, round(self.height * self.scale)),
         )
         interpolation = cv2.INTER_AREA if self.scale < 1 else cv2.INTER_LINEAR
-        scaled = cv2.resize(image, size, interpolation=interpolation)
-        self.pixels = torch.from_numpy(np.ascontiguousarray(scaled.transpose(2, 0, 1)))
+        try:  # the strip of a thin image is large: one that cannot be made is refused
+            scaled = cv2.resize(image, size, interpolation=interpolation)
+            self.pixels = torch.from_numpy(np.ascontiguousarray(scaled.transpose(2, 0, 1)))
+        except (cv2.error, MemoryError) as error:
+            what = f"a {self.width} x {self.height} image"
+            doing = f"scaling it to its {size[0]} x {size[1]} strip"
+            if isinstance(error, cv2.error):
+                doing += f" ({cv2_message(error)})"
+            raise DataError(out_of_memory(what, doing)) from error
 
     def window(self, crop: Crop) -> tuple[int, int]:
         """Top-left corner in the strip of the window that shows `crop`."""

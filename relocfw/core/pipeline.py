@@ -25,7 +25,7 @@ import torch
 
 from relocfw.core.camera import PinholeCamera
 from relocfw.core.errors import ConfigError, DataError
-from relocfw.core.imaging import check_rgb_image, check_rgb_images
+from relocfw.core.imaging import check_aspect, check_rgb_image, check_rgb_images
 from relocfw.core.interfaces import Backbone, CropSearch, SimilarityIndex
 from relocfw.core.network_answers import NetworkAnswers
 from relocfw.core.query_options import QueryOptions
@@ -277,10 +277,13 @@ class Relocalizer:
                 (refine=sequence: "seq-03/frame-000042"); None: unknown.
 
         Raises:
-            DataError: the image is of another type or shape (e.g. float, RGBA).
+            DataError: the image is of another type or shape (e.g. float, RGBA), is
+                thinner than query.max_aspect allows, or its crop search asks for
+                more windows than query.max_candidates.
         """
         check_rgb_image(image)
-        query = QueryWindows(image, self.scorer, self.options.scoring)  # strip
+        limits = (self.options.max_aspect, self.options.max_candidates)
+        query = QueryWindows(image, self.scorer, self.options.scoring, *limits)  # strip
         (crop,) = search_together(self.search, [query])  # search
         return self.answer(query, crop, camera=camera, name=name)
 
@@ -357,10 +360,14 @@ class Relocalizer:
         refiner in the order they are listed.
 
         Raises:
-            DataError: an image is not H x W x 3 uint8 RGB (naming its index), before
-                any query runs.
+            DataError: an image is not H x W x 3 uint8 RGB or is thinner than
+                query.max_aspect allows (naming its index), before any query runs; a
+                search asks for more windows than query.max_candidates.
         """
         check_rgb_images(images)
+        for number, image in enumerate(images):  # every shape before any query runs
+            height, width = image.shape[:2]
+            check_aspect(width, height, f"image {number} is", self.options.max_aspect)
         size = self.options.replace(queries_at_once=queries_at_once).queries_at_once
         cameras = [None] * len(images) if cameras is None else list(cameras)
         if len(cameras) != len(images):
@@ -376,7 +383,8 @@ class Relocalizer:
                 answers.append(self.localize(group[0], group_cameras[0], group_names[0]))
                 continue
             started = time.perf_counter()
-            queries = [QueryWindows(image, self.scorer, self.options.scoring) for image in group]
+            limits = (self.options.max_aspect, self.options.max_candidates)
+            queries = [QueryWindows(i, self.scorer, self.options.scoring, *limits) for i in group]
             crops = search_together(self.search, queries)
             score_chosen_together(queries, crops, self.options.rerank)
             found = [

@@ -19,12 +19,19 @@ from dataclasses import dataclass
 from typing import Any
 
 from relocfw.core.errors import ConfigError
-from relocfw.core.options import integer_at_least
+from relocfw.core.imaging import MAX_ASPECT
+from relocfw.core.options import integer_at_least, real_number
 
 SCORINGS = ("plain", "shared", "scout")
 # Scorings whose distances only rank candidates: the chosen crop is then scored plainly.
 RANKING_SCORINGS = ("shared", "scout")
 # Options that left QueryOptions, and where they went (one clear refusal, not "unknown").
+# The most distinct candidate windows a query's crop search may ask to score. A sweep
+# (crop=sweep, crop=rule) asks for every window along the long side: (aspect - 1) x
+# the window side + 1, so 2305 for the thinnest image MAX_ASPECT lets through with a
+# 224 network trained at crop_scale 256/224 (a 640 x 480 frame: 86). 4096 keeps every
+# search's answers on such images, and bounds a query at about 50 times a frame's work.
+MAX_CANDIDATES = 4096
 MOVED_OUT = {
     "retrieval_k": "the retrieval baseline is a refiner now: refine=retrieval refine.k=K "
     "(in Python: Relocalizer(..., refiner=RetrievalRefiner(k=K)), "
@@ -62,6 +69,13 @@ class QueryOptions:
         queries_at_once: how many queries of a list (`localize_many`, a test split)
             are searched together, their windows in merged forward passes; the answers
             are the same. 1: one at a time, so each query's `seconds` is its latency.
+        max_aspect: the thinnest query image answered: its long side at most this
+            many times its short side (relocfw.core.imaging.MAX_ASPECT); a thinner
+            one is refused with a DataError. The strip's memory and a sweep's windows
+            grow with this ratio. Answers are unchanged.
+        max_candidates: the most distinct windows a query's crop search may ask to
+            score (every crop search); past it the query is refused with a DataError
+            before any is scored. Answers are unchanged.
 
     Raises:
         ConfigError: naming the option, for a wrong type, range or combination.
@@ -73,6 +87,8 @@ class QueryOptions:
     crop_samples: int = 0
     sample_seed: int = 0
     queries_at_once: int = 1
+    max_aspect: float = MAX_ASPECT
+    max_candidates: int = MAX_CANDIDATES
 
     def __post_init__(self) -> None:
         # Frozen: the checked (int) values replace what was given, once.
@@ -82,8 +98,15 @@ class QueryOptions:
             ("crop_samples", 0),
             ("sample_seed", 0),
             ("queries_at_once", 1),
+            ("max_candidates", 1),
         ):
             object.__setattr__(self, name, integer_at_least(name, getattr(self, name), least))
+        if isinstance(self.max_aspect, bool):
+            raise ConfigError(f"max_aspect must be a number, got {self.max_aspect!r}")
+        max_aspect = real_number("max_aspect", self.max_aspect)
+        if max_aspect < 1:
+            raise ConfigError(f"max_aspect must be at least 1 (a square), got {self.max_aspect!r}")
+        object.__setattr__(self, "max_aspect", max_aspect)
         if self.scoring not in SCORINGS:
             raise ConfigError(f"scoring must be one of {', '.join(SCORINGS)}, got {self.scoring!r}")
         if self.rerank > 1 and self.scoring not in RANKING_SCORINGS:

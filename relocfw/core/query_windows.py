@@ -2,7 +2,10 @@
 
 A crop search asks for crops; offsets that round to the same strip window are the
 same network input, so everything is kept per window and a window is computed once
-(`evaluations` counts the distinct windows scored).
+(`evaluations` counts the distinct windows scored). The query's two limits are
+checked here, so they hold for every crop search: its shape (query.max_aspect) before
+the strip is built, and the distinct windows its search asks for
+(query.max_candidates) before any of them is scored.
 """
 
 from __future__ import annotations
@@ -13,9 +16,11 @@ from functools import cached_property
 
 import numpy as np
 
-from relocfw.core.imaging import image_fingerprint
+from relocfw.core.errors import DataError
+from relocfw.core.imaging import MAX_ASPECT, check_aspect, image_fingerprint
 from relocfw.core.interfaces import CropScores, SearchQuery
 from relocfw.core.network_answers import NetworkAnswers
+from relocfw.core.query_options import MAX_CANDIDATES
 from relocfw.core.scorer import Corner, Scorer
 from relocfw.core.values import Crop
 from relocfw.core.window_pooling import StripMaps
@@ -29,16 +34,31 @@ class QueryWindows:
         image: the query, H x W x 3 uint8 RGB (checked by the caller).
         scorer: the network and the map.
         scoring: "plain", "shared" or "scout" (relocfw.core.query_options.QueryOptions).
+        max_aspect, max_candidates: the query's limits (QueryOptions' fields).
+
+    Raises:
+        DataError: naming query.max_aspect, for an image thinner than it allows (or
+            one whose strip cannot be allocated); naming query.max_candidates, from
+            `corners`, when a search asks for more distinct windows.
 
     Calling it with crops is the query's CropDistance (it also carries `query_seed`),
     what the older `CropSearch.search` form is given.
     """
 
-    def __init__(self, image: np.ndarray, scorer: Scorer, scoring: str = "plain") -> None:
+    def __init__(
+        self,
+        image: np.ndarray,
+        scorer: Scorer,
+        scoring: str = "plain",
+        max_aspect: float = MAX_ASPECT,
+        max_candidates: int = MAX_CANDIDATES,
+    ) -> None:
         self.started = time.perf_counter()
+        check_aspect(image.shape[1], image.shape[0], "the query image is", max_aspect)
         self.image = image
         self.scorer = scorer
         self.scoring = scoring
+        self.max_candidates = max_candidates
         self.strip = scorer.strip(image)
         self.plain: dict[Corner, tuple[float, NetworkAnswers]] = {}
         # Shared or scout distances by window: they rank, the plain network answers.
@@ -57,8 +77,22 @@ class QueryWindows:
         return SearchQuery(self.image.shape[1], self.image.shape[0], lambda: self.query_seed)
 
     def corners(self, crops: Sequence[Crop]) -> list[Corner]:
-        """The strip windows of `crops`, remembering a crop for each."""
+        """The strip windows of `crops`, remembering a crop for each.
+
+        Raises:
+            DataError: naming query.max_candidates, when the windows the search has
+                asked for, these included, are more than it allows.
+        """
         corners = [self.strip.window(c) for c in crops]
+        asked = len(self.crop_of) + len({c for c in corners if c not in self.crop_of})
+        if asked > self.max_candidates:
+            height, width = self.image.shape[:2]
+            raise DataError(
+                f"the crop search asks for {asked} candidate windows of the {width} x "
+                f"{height} query image, more than query.max_candidates="
+                f"{self.max_candidates} allows (a thin image: lower query.max_aspect; or "
+                "a search that tries fewer: crop.stride for crop=sweep, or crop=ga)"
+            )
         for corner, crop in zip(corners, crops, strict=True):
             self.crop_of.setdefault(corner, crop)
         return corners

@@ -19,7 +19,7 @@ from pathlib import Path
 from types import ModuleType
 
 from relocfw.core.errors import ConfigError, DataError
-from relocfw.core.imaging import read_rgb
+from relocfw.core.imaging import MAX_ASPECT, check_aspect, read_rgb
 from relocfw.data.stream_frame import StreamFrame
 from relocfw.data.video_source import is_video, video_frame_count, video_frames
 
@@ -31,6 +31,7 @@ __all__ = [
     "open_frames",
     "source_kind",
     "timestamp_of",
+    "within_aspect",
 ]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -57,7 +58,9 @@ def source_kind(spec: str) -> str:
     return "files"
 
 
-def open_frames(spec: str, topic: str | None = None) -> Iterator[StreamFrame]:
+def open_frames(
+    spec: str, topic: str | None = None, max_aspect: float = MAX_ASPECT
+) -> Iterator[StreamFrame]:
     """The frames `spec` names, in order, each decoded when it is reached.
 
     Image files come in today's order (a folder's or glob's sorted by name) with
@@ -68,6 +71,9 @@ def open_frames(spec: str, topic: str | None = None) -> Iterator[StreamFrame]:
     Args:
         spec: a file, folder or glob of images, a video file, or a ROS bag.
         topic: the bag's image topic (required for a bag, refused for anything else).
+        max_aspect: an image file thinner than this (query.max_aspect) is an error
+            frame, refused on its header before it is decoded. A video's and a bag's
+            frames have no such header: `within_aspect` checks their pixels.
 
     Raises:
         ConfigError: naming localize.images when `spec` is empty, localize.topic when
@@ -88,7 +94,7 @@ def open_frames(spec: str, topic: str | None = None) -> Iterator[StreamFrame]:
     if kind == "bag":
         return bag_source(path, topic)
     paths = find_images(spec)
-    return file_frames(paths)
+    return file_frames(paths, max_aspect)
 
 
 def count_frames(spec: str, topic: str | None = None) -> int | None:
@@ -170,14 +176,28 @@ def timestamp_of(path: Path, position: int) -> str:
     return path.stem if TIMESTAMP_NAME.fullmatch(path.stem) else str(position)
 
 
-def file_frames(paths: list[Path]) -> Iterator[StreamFrame]:
-    """The images in order, each read when reached; one that cannot be read is an
-    error frame carrying read_rgb's message (which names the file)."""
+def file_frames(paths: list[Path], max_aspect: float = MAX_ASPECT) -> Iterator[StreamFrame]:
+    """The images in order, each read when reached; one that cannot be read (or is
+    thinner than `max_aspect`) is an error frame carrying read_rgb's message (which
+    names the file)."""
     for position, path in enumerate(paths):
         stamp = timestamp_of(path, position)
         try:
-            image = read_rgb(path)
+            image = read_rgb(path, max_aspect)
         except DataError as error:
             yield StreamFrame(str(path), stamp, None, str(error))
             continue
         yield StreamFrame(str(path), stamp, image, None)
+
+
+def within_aspect(frame: StreamFrame, max_aspect: float) -> StreamFrame:
+    """`frame`, or an error frame naming it when its pixels are thinner than
+    `max_aspect` (query.max_aspect): refused as a frame, so on_error=skip goes on."""
+    if frame.image is None:
+        return frame
+    height, width = frame.image.shape[:2]
+    try:
+        check_aspect(width, height, f"{frame.name} is", max_aspect)
+    except DataError as error:
+        return StreamFrame(frame.name, frame.timestamp, None, str(error))
+    return frame

@@ -105,5 +105,5 @@ def decode_image(body: bytes, max_pixels: int, max_aspect: float = MAX_ASPECT) -
         raise DataError(out_of_memory(BODY, "decoding it")) from error
     if image is None:
         raise DataError(f"cannot decode the request body's {kind.upper()} (truncated or corrupt)")
-    check_aspect(image.shape[1], image.shape[0], BODY, max_aspect)
+    check_aspect(image.shape[1], image.shape[0], f"{BODY} is", max_aspect)
     return np.ascontiguousarray(image[:, :, ::-1])

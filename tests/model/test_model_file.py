@@ -145,7 +145,7 @@ STORED_OPTIONS = {
     "sampling": QueryOptions(
         batch_size=7, scoring="shared", rerank=3, crop_samples=3, sample_seed=5, queries_at_once=3
     ),
-    "retrieval": QueryOptions(batch_size=5, queries_at_once=2),
+    "retrieval": QueryOptions(batch_size=5, queries_at_once=2, max_aspect=4, max_candidates=500),
 }
 
 

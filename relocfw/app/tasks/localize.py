@@ -31,6 +31,7 @@ from relocfw.app.config_schema import name_of
 from relocfw.app.engines import on_engine
 from relocfw.app.methods import in_query_terms, query_values
 from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.imaging import MAX_ASPECT
 from relocfw.core.pipeline import Relocalizer
 from relocfw.core.progress import Progress
 from relocfw.core.values import Localization
@@ -42,6 +43,7 @@ from relocfw.data.streams import (
     open_frames,
     source_kind,
     timestamp_of,
+    within_aspect,
 )
 from relocfw.model.distributed import World
 from relocfw.model.model_file import load_model
@@ -140,6 +142,7 @@ def localize_frames(
     progress = Progress(total, "localizing", quiet=quiet, unit="frames")
     options = getattr(relocalizer, "options", None)
     group = getattr(options, "queries_at_once", 1)
+    max_aspect = getattr(options, "max_aspect", MAX_ASPECT)
     files = AnswerFiles(run_dir)
     waiting: list[Waiting] = []
 
@@ -161,6 +164,7 @@ def localize_frames(
             frame = next(stream, None)
             if frame is None:
                 break
+            frame = within_aspect(frame, max_aspect)  # too thin: a frame on_error handles
             if frame.error is not None or frame.image is None:
                 if on_error == "fail":
                     answer_waiting()  # the frames before it keep their rows
@@ -198,7 +202,8 @@ def localize_images(
     on_error: str = "fail",
 ) -> LocalizeRun:
     """Localize image files in the order given (see localize_frames)."""
-    frames = file_frames([Path(p) for p in images])
+    max_aspect = getattr(getattr(relocalizer, "options", None), "max_aspect", MAX_ASPECT)
+    frames = file_frames([Path(p) for p in images], max_aspect)
     return localize_frames(relocalizer, frames, run_dir, quiet, len(images), on_error)
 
 
@@ -227,7 +232,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         )
     spec = str(cfg.localize.images or "")
     topic = str(cfg.localize.topic) if cfg.localize.topic else None
-    frames = open_frames(spec, topic)
+    frames = open_frames(spec, topic, relocalizer.options.max_aspect)
     total = count_frames(spec, topic)
     # A stream (video, bag) is one recording, named by its file; image files by folder.
     recording = None if source_kind(spec) == "files" else Path(spec).name

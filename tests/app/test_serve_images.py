@@ -1,0 +1,75 @@
+"""Thin images sent to the service: refused by relocfw.serve.images.decode_image on
+their header, in one line naming query.max_aspect, and answered over HTTP as a 400
+JSON, never a plain-text 500 from an allocation deep in the strip."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from relocfw.core.errors import DataError
+from relocfw.serve.images import decode_image
+from tests.app.test_serve_helpers import (
+    MAX_BYTES,
+    MAX_PIXELS,
+    png_of,
+    running,
+    serve_command,
+    tiny_model,
+)
+
+
+def thin_png(width: int) -> bytes:
+    return cv2.imencode(".png", np.full((1, width, 3), 90, np.uint8))[1].tobytes()
+
+
+@pytest.mark.parametrize("width", [5000, 300000])
+def test_decode_image_refuses_a_thin_png_on_its_header(width):
+    body = thin_png(width)
+    assert len(body) < 1500
+    with pytest.raises(DataError) as refused:
+        decode_image(body, max_pixels=MAX_PIXELS)
+    message = str(refused.value)
+    assert message.startswith(f"the request body: its header announces {width} x 1 pixels")
+    assert "more than query.max_aspect=10 allows" in message and "\n" not in message
+    # A raised limit lets it through to the pixels, which are checked again.
+    assert decode_image(body, MAX_PIXELS, max_aspect=width).shape == (1, width, 3)
+
+
+def test_decode_image_checks_the_pixels_too(monkeypatch):
+    import relocfw.serve.images as images
+
+    monkeypatch.setattr(images, "check_header", lambda *_: None)  # as if no header were read
+    monkeypatch.setattr(images, "check_pixels", lambda *_: None)
+    with pytest.raises(DataError, match=r"^the request body is 5000 x 1 pixels, .*max_aspect"):
+        decode_image(thin_png(5000), MAX_PIXELS)
+
+
+def test_decode_image_turns_an_allocation_failure_into_a_data_error(monkeypatch):
+    import relocfw.serve.images as images
+
+    def out_of_memory(*_):
+        raise MemoryError
+
+    monkeypatch.setattr(images.cv2, "imdecode", out_of_memory)
+    with pytest.raises(DataError, match=r"^the request body: out of memory decoding it; .*pixels"):
+        decode_image(png_of(np.zeros((4, 4, 3), np.uint8)), MAX_PIXELS)
+
+
+def test_the_service_answers_thin_images_with_a_400_json(tmp_path):
+    model = tiny_model(tmp_path)
+    overrides = [f"serve.max_bytes={MAX_BYTES}", f"serve.max_pixels={MAX_PIXELS}"]
+    (tmp_path / "serve").mkdir()
+    command = serve_command(model, *overrides)
+    with running(command, tmp_path / "serve") as server, server.client() as client:
+        for width in (5000, 300000):
+            answer = client.post(
+                "/v1/localize", content=thin_png(width), headers={"Content-Type": "image/png"}
+            )
+            assert answer.status_code == 400, answer.text
+            assert answer.headers["content-type"] == "application/json"
+            assert "query.max_aspect=10" in answer.json()["error"]
+        good = png_of(np.zeros((36, 48, 3), np.uint8))
+        answer = client.post("/v1/localize", content=good, headers={"Content-Type": "image/png"})
+        assert answer.status_code == 200, answer.text
