@@ -11,6 +11,7 @@ The parts, one per module:
     auth       the optional bearer token (serve.token_file)
     workers    where queries run: one thread, or one process per worker
     queue      the bounded queue in front of the workers (serve.max_pending)
+    body_budget  the bytes of bodies still arriving, bounded
     answers    a Localization and the model as JSON
     app        the FastAPI application over all of them
     guard      around the application: refusals counted, requests cut off by a stop

@@ -5,7 +5,8 @@ before any work it would waste: the token (401), the content type (415), the que
 fields (422), the body's size (413) and its time (408), a full queue (503) and the
 image (400). The service goes on serving after each. A request takes its queue place
 only once its whole body is in, so clients that send their bodies slowly, or never,
-hold no place a real query needs (the body timeout ends them).
+hold no place a real query needs (the body timeout ends them); the bodies still
+arriving are bounded by the bytes received (relocfw.serve.body_budget, 503).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.version import VERSION
 from relocfw.serve.answers import ModelInfo, Timings, answer_json
 from relocfw.serve.auth import BearerToken
+from relocfw.serve.body_budget import BodyBudget, BodyBudgetError
 from relocfw.serve.fields import FieldError, parse_fields
 from relocfw.serve.guard import CLIENT_LEFT, LOG, ASGIApp, Guarded, over_capacity, refusal
 from relocfw.serve.images import MediaTypeError, check_content_type, decode_image
@@ -89,12 +91,14 @@ def status_of(error: Exception) -> int:
     return 400
 
 
-async def read_body(request: Request, max_bytes: int) -> bytes:
+async def read_body(request: Request, max_bytes: int, budget: BodyBudget) -> bytes:
     """The body, refused (BodyTooLargeError) as soon as it is known to pass `max_bytes`:
-    from Content-Length before reading, else while reading, never held whole.
+    from Content-Length before reading, else while reading, never held whole. Its bytes
+    are held in `budget` while they arrive and given back when it is in or dropped.
 
     Raises:
         ClientLeftError: the client disconnected before the body's end.
+        BodyBudgetError: the bodies arriving at once would pass the budget.
     """
     declared = request.headers.get("content-length", "")
     if declared.isdigit() and int(declared) > max_bytes:
@@ -102,20 +106,23 @@ async def read_body(request: Request, max_bytes: int) -> bytes:
     chunks, size = [], 0
     try:
         async for chunk in request.stream():
-            size += len(chunk)
-            if size > max_bytes:
+            if size + len(chunk) > max_bytes:
                 raise BodyTooLargeError(f"the body is over serve.max_bytes={max_bytes} bytes")
+            budget.take(len(chunk))
+            size += len(chunk)
             chunks.append(chunk)
     except ClientDisconnect:
         raise ClientLeftError(size, declared) from None
+    finally:
+        budget.give_back(size)
     return b"".join(chunks)
 
 
-async def read_body_in_time(request: Request, settings: ServeSettings) -> bytes:
+async def read_body_in_time(request: Request, settings: ServeSettings, budget: BodyBudget) -> bytes:
     """read_body within serve.body_timeout_s (BodyTimeoutError after it)."""
     try:
         async with asyncio.timeout(settings.body_timeout_s):
-            return await read_body(request, settings.max_bytes)
+            return await read_body(request, settings.max_bytes, budget)
     except TimeoutError:
         raise BodyTimeoutError(
             f"the body was not in within serve.body_timeout_s={settings.body_timeout_s:g} "
@@ -155,6 +162,8 @@ def create_app(service: Service) -> FastAPI:
         yield
         await run_in_threadpool(service.queue.workers.shutdown)
 
+    # The bodies still arriving, bounded as the queue's places bound the bodies in.
+    bodies = BodyBudget(service.settings.max_pending * service.settings.max_bytes)
     pages: dict[str, Any] = (
         {"docs_url": None, "redoc_url": None, "openapi_url": None} if service.token else {}
     )
@@ -252,7 +261,9 @@ def create_app(service: Service) -> FastAPI:
             "(serve.max_pending); retry after the Retry-After seconds"
         )
         try:
-            body = await read_body_in_time(request, service.settings)
+            body = await read_body_in_time(request, service.settings, bodies)
+        except BodyBudgetError as error:
+            return refusal(503, str(error), retry)
         except ClientLeftError as left:
             LOG.warning("relocfw serve: a client left before its body was in (%s)", left)
             return Response(status_code=CLIENT_LEFT)

@@ -152,6 +152,28 @@ def test_connections_over_the_cap_are_refused_503_naming_the_key(impatient):
     assert post_image(impatient.url).status_code == 200
 
 
+def test_bodies_arriving_at_once_are_bounded_by_the_bytes_received(model, tmp_path):
+    """max_pending x max_bytes bounds the bodies still arriving: a client that sent
+    most of a large body and stalls leaves too little for a good one (503 naming the
+    keys); once it is gone, the good one is answered."""
+    max_bytes = 2 * len(IMAGE)
+    overrides = ["serve.max_pending=1", f"serve.max_bytes={max_bytes}"]
+    announced = (
+        b"POST /v1/localize HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: image/png\r\n"
+        + f"Content-Length: {max_bytes}\r\n\r\n".encode()
+        + b"\x00" * (max_bytes - len(IMAGE) // 2)
+    )
+    with running(serve_command(model, *overrides), tmp_path) as server:
+        with open_sockets(server.url, announced, 1):
+            time.sleep(0.5)  # the server has received the stalled body's bytes by now
+            refused = post_image(server.url)
+            assert refused.status_code == 503, refused.text
+            assert "serve.max_pending x serve.max_bytes" in refused.json()["error"]
+            assert refused.headers["retry-after"] == "1"
+        time.sleep(0.5)  # the stalled client has gone: its bytes are given back
+        assert post_image(server.url).status_code == 200
+
+
 def test_a_flood_of_header_less_connections_neither_stops_the_service_nor_its_log(model, tmp_path):
     """The review's case: 1100 connections that send nothing, at `ulimit -n 1024`."""
     import resource
