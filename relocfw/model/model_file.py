@@ -65,8 +65,12 @@ PART_INTERFACES: dict[str, type] = {
 }
 REQUIRED_PARTS = ("backbone", "index", "crop")
 # Query options that change how work is grouped, not the answers (Relocalizer
-# .localize_many answers as localize does): overriding them keeps a file's error bounds.
-ANSWER_NEUTRAL_OPTIONS = frozenset({"batch_size", "queries_at_once"})
+# .localize_many answers as localize does), and the limits on which queries are taken
+# at all (an image past them is refused, never answered otherwise): overriding them
+# keeps a file's error bounds.
+ANSWER_NEUTRAL_OPTIONS = frozenset(
+    {"batch_size", "queries_at_once", "max_aspect", "max_candidates"}
+)
 
 
 def class_path(obj: object) -> str:

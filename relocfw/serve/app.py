@@ -26,6 +26,7 @@ from starlette.exceptions import HTTPException
 from starlette.requests import ClientDisconnect
 
 from relocfw.core.errors import ConfigError, DataError
+from relocfw.core.imaging import MAX_ASPECT
 from relocfw.core.version import VERSION
 from relocfw.serve.answers import ModelInfo, Timings, answer_json
 from relocfw.serve.auth import BearerToken
@@ -74,6 +75,8 @@ class Service:
     queue: QueryQueue
     info: ModelInfo
     token: BearerToken | None = None
+    # The loaded model's query.max_aspect: a body's header is held to it before decoding.
+    max_aspect: float = MAX_ASPECT
 
 
 def status_of(error: Exception) -> int:
@@ -273,7 +276,9 @@ def create_app(service: Service) -> FastAPI:
             return refusal(503, full, retry)
         handed_over = False
         try:
-            image = await run_in_threadpool(decode_image, body, service.settings.max_pixels)
+            image = await run_in_threadpool(
+                decode_image, body, service.settings.max_pixels, service.max_aspect
+            )
             camera = fields.camera(image.shape[1], image.shape[0])
             decoded = time.perf_counter()
             handed_over = True

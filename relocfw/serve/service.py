@@ -110,7 +110,7 @@ def run_service(settings: ServeSettings, relocalizer: Relocalizer, loader: Loade
             f"a worker process could not load serve.model={settings.model} (its error is above)"
         ) from error
     queue = QueryQueue(workers, settings.max_pending)
-    service = Service(settings, queue, info, token)
+    service = Service(settings, queue, info, token, relocalizer.options.max_aspect)
     protocol = guarded_protocol(
         settings.header_timeout_s, settings.max_connections, over_capacity_app(service)
     )

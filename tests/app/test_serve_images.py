@@ -73,3 +73,15 @@ def test_the_service_answers_thin_images_with_a_400_json(tmp_path):
         good = png_of(np.zeros((36, 48, 3), np.uint8))
         answer = client.post("/v1/localize", content=good, headers={"Content-Type": "image/png"})
         assert answer.status_code == 200, answer.text
+
+
+def test_the_service_checks_headers_against_the_query_max_aspect_it_runs_with(tmp_path):
+    """query.max_aspect raised for the service reaches its header check, not only the
+    pipeline: a 15:1 PNG is answered at query.max_aspect=20 and refused at the default."""
+    model = tiny_model(tmp_path)
+    wide = png_of(np.zeros((4, 60, 3), np.uint8))
+    (tmp_path / "serve").mkdir()
+    command = serve_command(model, "query.max_aspect=20")
+    with running(command, tmp_path / "serve") as server, server.client() as client:
+        answer = client.post("/v1/localize", content=wide, headers={"Content-Type": "image/png"})
+        assert answer.status_code == 200, answer.text

@@ -102,6 +102,8 @@ def test_query_options_that_change_answers_drop_the_bounds(scene, tmp_path):
     path = save_model(tmp_path / "m.relocfw", relocalizer, {"backbone": options}, {})
     assert load_model(path).bounds is not None
     assert load_model(path, overrides={"batch_size": 3}).bounds is not None
+    # The limits on which queries are taken change no answer either.
+    assert load_model(path, overrides={"max_aspect": 20.0, "max_candidates": 99}).bounds is not None
     changed = load_model(path, overrides={"sample_seed": 7})
     assert changed.bounds is None
     assert changed.metadata["bounds_dropped_for"] == ["sample_seed"]
