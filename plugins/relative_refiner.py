@@ -70,6 +70,7 @@ from relocfw.structure.refiner_inputs import (
     map_camera,
     query_camera,
 )
+from relocfw.structure.refiner_state import MOST_KEYFRAMES, MOST_SIZES, checked_size
 from relocfw.structure.relative_pose import (
     QueryRay,
     locate_by_rays,
@@ -82,11 +83,14 @@ from relocfw.structure.structure_map import StructureMap, on_descriptor_grid
 
 STATE_LABEL = "refine=relative state"
 # The options a state keeps: integers with their least values, numbers with their
-# largest (None: no bound).
+# largest (None: none). The size-like ones (MOST_SIZES) are bounded above as
+# refine=features' are: a model file is data from anyone, and a forged size must be
+# refused on loading, not reach OpenCV (SIFT with 2**40 features raises at every
+# query); min_keyframes cannot mean more than the most keyframes a query retrieves.
 INTEGER_OPTIONS = {"count": 1, "max_features": 8, "min_inliers": 5, "min_keyframes": 2}
 NUMBER_OPTIONS = {
     "ratio": 1.0,
-    "max_error_px": None,
+    "max_error_px": None,  # bounded as a size (MOST_SIZES), as refine=features' is
     "min_parallax_deg": 90.0,
     "min_ray_angle_deg": 90.0,
     "max_ray_error_deg": 90.0,
@@ -95,12 +99,21 @@ NUMBER_OPTIONS = {
 
 def checked_options(options: dict) -> dict:
     """Every query option checked and named as the command line spells it."""
-    checked = {
-        key: integer_at_least(f"refine.{key}", options[key], least)
-        for key, least in INTEGER_OPTIONS.items()
-    }
+    checked = {}
+    for key, least in INTEGER_OPTIONS.items():
+        if key in MOST_SIZES:
+            checked[key] = checked_size(key, options[key], least)
+            continue
+        checked[key] = integer_at_least(f"refine.{key}", options[key], least)
+        if checked[key] > MOST_KEYFRAMES:
+            raise ConfigError(
+                f"refine.{key} must be at most {MOST_KEYFRAMES}, got {options[key]!r}"
+            )
     for key, most in NUMBER_OPTIONS.items():
-        checked[key] = positive_number(f"refine.{key}", options[key], most=most)
+        if key in MOST_SIZES:
+            checked[key] = checked_size(key, options[key])
+        else:
+            checked[key] = positive_number(f"refine.{key}", options[key], most=most)
     return checked
 
 

@@ -20,6 +20,10 @@ from relocfw.core.imaging import check_rgb_image
 from relocfw.core.options import integer_at_least
 
 SIFT_DIMENSIONS = 128
+# The most keypoints any image is asked for, far above any use: a size from a model
+# file or the command line above it would reach OpenCV (SIFT_create raises for 2**40
+# at every image) or hold more features than an image of the largest camera has.
+MOST_FEATURES = 100_000
 
 
 @dataclass(frozen=True)
@@ -106,11 +110,13 @@ def extract_rootsift(
 
     Raises:
         DataError: when `image` is not an [H, W, 3] uint8 array.
-        ConfigError: when `max_features` is not an integer >= 1 (OpenCV reads 0 as
-            "no limit", which would silently lift the bound).
+        ConfigError: when `max_features` is not an integer in 1 .. MOST_FEATURES
+            (OpenCV reads 0 as "no limit", which would silently lift the bound).
     """
     check_rgb_image(image)
     max_features = integer_at_least("max_features", max_features, 1)
+    if max_features > MOST_FEATURES:
+        raise ConfigError(f"max_features must be at most {MOST_FEATURES}, got {max_features}")
     scale = checked_image_scale(image_scale)
     grey = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
     if scale != 1.0:

@@ -18,6 +18,7 @@ from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.options import integer_at_least, positive_number
 from relocfw.core.standardise import ZScore
 from relocfw.structure.absolute_pose import POSELIB_MAX_ITERATIONS
+from relocfw.structure.features import MOST_FEATURES
 from relocfw.structure.map_state import checked_tensor
 
 # Stored as its index here: append new choices, never reorder (older files keep
@@ -51,7 +52,6 @@ STATE_NUMBERS = ("ratio", "max_error_px", "image_scale")
 # 2**40 features raises at every query) or a loop. An image has at most
 # MOST_CAMERA_PIXELS a side, so neither a keypoint count nor an inlier count nor a
 # reprojection bound above these means anything.
-MOST_FEATURES = 100_000
 MOST_KEYFRAMES = 1000
 MOST_SIZES = {
     "count": MOST_KEYFRAMES,

@@ -83,6 +83,13 @@ def test_an_impossible_max_features_raises_a_config_error(max_features):
         extract_rootsift(textured_image(), max_features=max_features)
 
 
+def test_a_max_features_beyond_any_use_is_a_config_error_not_an_opencv_one():
+    # OpenCV's SIFT raises its own error for 2**40 (a forged option would reach it).
+    message = r"^max_features must be at most 100000, got 1099511627776"
+    with pytest.raises(ConfigError, match=message):
+        extract_rootsift(textured_image(), max_features=2**40)
+
+
 def test_local_features_check_their_shapes_and_are_read_only():
     features = LocalFeatures(np.zeros((3, 2)), np.ones((3, 128)))
     assert features.keypoints.dtype == np.float32 and len(features) == 3

@@ -120,6 +120,27 @@ def test_a_bad_option_is_refused_naming_its_key(options, message):
     assert str(caught.value).startswith(message)
 
 
+@pytest.mark.parametrize(
+    ("key", "value", "most"),
+    [
+        ("max_features", 2**40, 100000),
+        ("count", 2**40, 1000),
+        ("min_inliers", 2**40, 100000),
+        ("min_keyframes", 2**40, 1000),
+    ],
+)
+def test_a_size_beyond_any_use_is_refused_on_the_command_line_and_in_a_state(
+    fitted, key, value, most
+):
+    # 2**40 features made every query raise in OpenCV's SIFT_create.
+    message = rf"refine\.{key} must be at most {most}, got {value}"
+    with pytest.raises(ConfigError, match=rf"^{message}"):
+        RelativeRefiner(**{key: value})
+    forged = dict(fitted.state(), **{key: torch.tensor(value)})
+    with pytest.raises(DataError, match=rf"^refine=relative state: {message}"):
+        RelativeRefiner().load_state(forged)
+
+
 def test_a_map_without_cameras_is_refused_by_name(room):
     view = room["views"][0]
     frames = [MapImage("seq-01/frame-000007", view.image, view.pose, None)]
