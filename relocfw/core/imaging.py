@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -28,13 +29,17 @@ MAX_IMAGE_PIXELS = 2**30
 MAX_ASPECT = 10.0
 
 
-def read_rgb(path: Path, max_aspect: float = MAX_ASPECT) -> np.ndarray:
+def read_rgb(path: Path, max_aspect: float = math.inf, key: str | None = None) -> np.ndarray:
     """RGB uint8 image (H x W x 3); grey images are expanded to three channels.
 
     Args:
         path: the image file.
         max_aspect: the most its long side may be times its short side (checked on a
-            PNG or JPEG header before decoding, and on the pixels of every image).
+            PNG or JPEG header before decoding, and on the pixels of every image). No
+            limit by default: a map image is not a query; a query's shape is checked
+            where it is queried (relocfw.core.query_windows) or by a caller reading
+            queries (task=localize's files, with query.max_aspect).
+        key: the option that set `max_aspect`, named in a refusal (None: none did).
 
     Raises:
         DataError: naming the file, when it is missing or cannot be decoded, when its
@@ -46,7 +51,7 @@ def read_rgb(path: Path, max_aspect: float = MAX_ASPECT) -> np.ndarray:
     if not path.is_file():
         raise DataError(f"image not found: {path}")
     data = np.fromfile(path, dtype=np.uint8)
-    check_header(data, str(path), max_aspect)
+    check_header(data, str(path), max_aspect, key)
     if is_16_bit_grey_png(data):
         raise DataError(f"{path} is a 16-bit single-channel PNG (a depth map?), not a colour image")
     try:
@@ -62,7 +67,7 @@ def read_rgb(path: Path, max_aspect: float = MAX_ASPECT) -> np.ndarray:
         raise DataError(out_of_memory(str(path), "decoding it")) from error
     if image is None:
         raise DataError(f"cannot decode image (corrupt or not an image): {path}")
-    check_aspect(image.shape[1], image.shape[0], f"{path} is", max_aspect)
+    check_aspect(image.shape[1], image.shape[0], f"{path} is", max_aspect, key)
     return np.ascontiguousarray(image[:, :, ::-1])
 
 
@@ -81,9 +86,15 @@ def out_of_memory(name: str, doing: str) -> str:
 
 
 def check_header(
-    data: np.ndarray | bytes, name: str, max_aspect: float = MAX_ASPECT
+    data: np.ndarray | bytes, name: str, max_aspect: float = math.inf, key: str | None = None
 ) -> ImageHeader | None:
     """A PNG or JPEG header, read and checked before decoding; None for other formats.
+
+    Args:
+        data: the encoded image.
+        name: how a refusal names it (a file, a bag message, the request body).
+        max_aspect: the most its long side may be times its short side (no limit by
+            default); `key`: the option that set it (see check_aspect).
 
     Raises:
         DataError: naming `name`, for a damaged header, one announcing more than
@@ -98,24 +109,33 @@ def check_header(
             f"{name}: its header announces {width} x {height} pixels, more than the "
             f"{MAX_IMAGE_PIXELS} relocfw decodes (a corrupt header, or scale the image down)"
         )
-    check_aspect(width, height, f"{name}: its header announces", max_aspect)
+    check_aspect(width, height, f"{name}: its header announces", max_aspect, key)
     return header
 
 
-def check_aspect(width: int, height: int, what: str, max_aspect: float = MAX_ASPECT) -> None:
+def check_aspect(
+    width: int,
+    height: int,
+    what: str,
+    max_aspect: float = MAX_ASPECT,
+    key: str | None = "query.max_aspect",
+) -> None:
     """Refuse an image whose long side is more than `max_aspect` times its short side
-    (query.max_aspect): its strip and its crop searches grow with that ratio.
+    (query.max_aspect for a query): its strip and its crop searches grow with that ratio.
 
     Args:
         what: the start of the message, naming the image: "x.png is", "x.png: its
             header announces".
+        key: the option that set `max_aspect`, named in the refusal; None where no
+            option did, so the message never points at a key that would not help.
     """
     long, short = max(width, height), min(width, height)
     if long > max_aspect * short:
+        limit = f"{key}={max_aspect:g}" if key else f"{max_aspect:g}"
+        remedy = f"crop the image, or raise {key}" if key else "crop the image"
         raise DataError(
             f"{what} {width} x {height} pixels, its long side {long / max(short, 1):.4g} "
-            f"times its short side, more than query.max_aspect={max_aspect:g} allows "
-            "(crop the image, or raise query.max_aspect)"
+            f"times its short side, more than {limit} allows ({remedy})"
         )
 
 

@@ -79,8 +79,7 @@ def compressed_colour(message: Any, name: str) -> np.ndarray:
     """A CompressedImage's RGB pixels; refusals name the message as `name`."""
     data = np.asarray(message.data, dtype=np.uint8)
     what = f"compressed image ({message.format})"
-    # No aspect limit here (infinite): see colour_image.
-    check_header(data, f"{name}: {what}", max_aspect=float("inf"))
+    check_header(data, f"{name}: {what}")  # no aspect limit here: see colour_image
     try:
         decoded = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
     except cv2.error as error:  # a format whose header is not read (OpenCV's own limit)

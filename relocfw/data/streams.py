@@ -183,7 +183,7 @@ def file_frames(paths: list[Path], max_aspect: float = MAX_ASPECT) -> Iterator[S
     for position, path in enumerate(paths):
         stamp = timestamp_of(path, position)
         try:
-            image = read_rgb(path, max_aspect)
+            image = read_rgb(path, max_aspect, key="query.max_aspect")
         except DataError as error:
             yield StreamFrame(str(path), stamp, None, str(error))
             continue

@@ -58,7 +58,7 @@ def check_pixels(data: np.ndarray, max_pixels: int, max_aspect: float = MAX_ASPE
     """Refuse, before decoding, a damaged header or one announcing more than
     imaging.MAX_IMAGE_PIXELS or an image thinner than `max_aspect` (imaging's own
     messages), or more than `max_pixels` (serve.max_pixels)."""
-    header = check_header(data, BODY, max_aspect)
+    header = check_header(data, BODY, max_aspect, key="query.max_aspect")
     if header is None:  # image_format let only PNG and JPEG through
         raise DataError("the request body is not a PNG or JPEG image")
     if header.width * header.height > max_pixels:

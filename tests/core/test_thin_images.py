@@ -15,6 +15,8 @@ from relocfw.core import imaging
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import Strip, read_rgb
 from relocfw.core.values import Pose
+from relocfw.data.frames import Frame, read_images
+from relocfw.data.intrinsics import image_size
 from relocfw.plugins.exhaustive_index import ExhaustiveIndex
 from relocfw.plugins.ga_crop import GeneticCropSearch
 from relocfw.plugins.posenet import PoseNet
@@ -32,7 +34,7 @@ def test_read_rgb_refuses_a_thin_png_on_its_header(tmp_path, width):
     path = thin_png(tmp_path / "thin.png", width)
     assert path.stat().st_size < 1500
     with pytest.raises(DataError) as refused:
-        read_rgb(path)
+        read_rgb(path, max_aspect=10, key="query.max_aspect")
     message = str(refused.value)
     assert message.startswith(f"{path}: its header announces {width} x 1 pixels")
     assert "query.max_aspect=10 allows" in message and "\n" not in message
@@ -42,8 +44,27 @@ def test_read_rgb_checks_the_pixels_of_formats_whose_header_is_not_read(tmp_path
     path = tmp_path / "thin.bmp"
     cv2.imwrite(str(path), np.zeros((2, 50, 3), np.uint8))
     with pytest.raises(DataError, match=r"thin\.bmp is 50 x 2 pixels, its long side 25 times"):
-        read_rgb(path)
+        read_rgb(path, max_aspect=10)
     assert read_rgb(path, max_aspect=25).shape == (2, 50, 3)
+
+
+def test_map_images_are_read_with_no_aspect_limit_and_no_key_is_named(tmp_path):
+    # Map images are not queries: a 1200 x 100 one reads (the pixel limit still holds),
+    # and the camera's size is taken from it, not from the next image.
+    thin = tmp_path / "thin.png"
+    cv2.imwrite(str(thin), np.full((100, 1200, 3), 90, np.uint8))
+    square = tmp_path / "square.png"
+    cv2.imwrite(str(square), np.full((100, 100, 3), 90, np.uint8))
+    assert read_rgb(thin).shape == (100, 1200, 3)
+    frame = Frame("thin", thin, Pose([0.0, 0.0, 0.0], [1.0, 0, 0, 0]))
+    assert read_images([frame], quiet=True)[0].shape == (100, 1200, 3)
+    assert image_size([thin, square]) == (1200, 100)
+    # A limit that no option sets names no option.
+    with pytest.raises(DataError) as refused:
+        read_rgb(thin, max_aspect=5)
+    message = str(refused.value)
+    assert message.startswith(f"{thin}: its header announces 1200 x 100 pixels")
+    assert "more than 5 allows (crop the image)" in message and "query." not in message
 
 
 def relocalizer(search=None, **options) -> Relocalizer:
