@@ -122,11 +122,16 @@ async def read_body(request: Request, max_bytes: int, budget: BodyBudget) -> byt
 
 
 async def read_body_in_time(request: Request, settings: ServeSettings, budget: BodyBudget) -> bytes:
-    """read_body within serve.body_timeout_s (BodyTimeoutError after it)."""
+    """read_body within serve.body_timeout_s (BodyTimeoutError after it): a deadline
+    for the whole body, not for each chunk, so a client cannot hold its connection by
+    trickling bytes."""
     try:
-        async with asyncio.timeout(settings.body_timeout_s):
-            return await read_body(request, settings.max_bytes, budget)
-    except TimeoutError:
+        # wait_for, not asyncio.timeout (Python 3.11); on 3.10 it raises
+        # asyncio.TimeoutError, which is not yet the builtin TimeoutError.
+        return await asyncio.wait_for(
+            read_body(request, settings.max_bytes, budget), settings.body_timeout_s
+        )
+    except asyncio.TimeoutError:
         raise BodyTimeoutError(
             f"the body was not in within serve.body_timeout_s={settings.body_timeout_s:g} "
             "seconds of the request's headers"
