@@ -10,7 +10,16 @@ after any number of `FF` fill bytes. SOI, EOI, RST0-RST7 and TEM stand alone; ev
 other marker starts a segment whose two-byte length counts itself. The frame size is
 in the first start-of-frame segment (SOF0-SOF15 less DHT, JPG and DAC). Bytes between
 segments that are not a marker are skipped, as libjpeg skips them (with a warning),
-so the frame header found is the one libjpeg decodes.
+so the frame header found is the one libjpeg decodes. Where the reader and libjpeg
+differ, the reader refuses what libjpeg would read: a segment length of 0 or 1
+(libjpeg skips nothing and reads on), a frame height of 0 (a height given later in a
+DNL segment, which libjpeg does not decode either), and more than JPEG_MOST_MARKERS
+markers before the first scan.
+
+A crafted header costs the walk no more than one pass over the data in C: bytes
+between segments and a run of fill bytes are each skipped by one C-level search, and
+the Python steps (one per marker or stuffed zero, FF 00) are capped by
+JPEG_MOST_MARKERS.
 
 PNG: libpng refuses a file whose first chunk is not a 13-byte IHDR, and a width or
 height of 0 or above 2^31 - 1 (png_get_uint_31).
@@ -18,6 +27,8 @@ height of 0 or above 2^31 - 1 (png_get_uint_31).
 
 from __future__ import annotations
 
+import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,6 +45,13 @@ JPEG_START_OF_SCAN = 0xDA
 JPEG_FRAME_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 # A frame header's fixed part: length (2), precision (1), height (2), width (2), Nf (1).
 JPEG_FRAME_FIXED = 8
+# The most markers (and FF 00 pairs, which libjpeg skips) read from SOI to the first
+# scan. A camera writes fewer than 100 markers (APPn blocks, tables), and an ICC
+# profile is split into at most 255 APP2 chunks. More is a crafted header (millions of
+# 4-byte comments, TEM markers or FF 00 pairs in a 20 MB body, each a Python step):
+# refused as damaged.
+JPEG_MOST_MARKERS = 1024
+JPEG_FILL = re.compile(rb"\xff+")  # a marker's FF and the fill bytes before it
 PNG_IHDR_LENGTH = 13
 PNG_LARGEST = 2**31 - 1  # png_get_uint_31's bound
 
@@ -88,55 +106,67 @@ def png_header(data: bytes, name: str) -> ImageHeader:
     return ImageHeader("png", width, height)
 
 
+def jpeg_damaged(name: str, problem: str) -> DataError:
+    return DataError(f"{name}: damaged JPEG header ({problem})")
+
+
 def jpeg_header(data: bytes, name: str) -> ImageHeader:
     """The size in a JPEG's first frame header, its markers walked from SOI."""
-
-    def damaged(problem: str) -> DataError:
-        return DataError(f"{name}: damaged JPEG header ({problem})")
-
-    offset = len(JPEG_START)
-    while True:
-        found = next_jpeg_marker(data, offset)
-        if found is None:
-            raise damaged("the data ends before its frame header")
-        marker, offset = found  # offset: just after the marker
-        if marker in JPEG_STANDALONE:
-            continue
+    for marker, offset, length in jpeg_markers(data, name):
         if marker == JPEG_END_OF_IMAGE:
-            raise damaged("the image ends before its frame header")
+            raise jpeg_damaged(name, "the image ends before its frame header")
         if marker == JPEG_START_OF_SCAN:
-            raise damaged("a scan starts before the frame header")
-        if offset + 2 > len(data):
-            raise damaged("the data ends before its frame header")
-        length = int.from_bytes(data[offset : offset + 2], "big")
-        if length < 2:
-            raise damaged(f"a segment length of {length}, below the 2 bytes of the length")
-        if offset + length > len(data):
-            raise damaged(f"a segment of {length} bytes at byte {offset} runs past the end")
+            raise jpeg_damaged(name, "a scan starts before the frame header")
         if marker in JPEG_FRAME_MARKERS:
             if length < JPEG_FRAME_FIXED:
-                raise damaged(f"a frame header of {length} bytes, too short for a size")
+                raise jpeg_damaged(name, f"a frame header of {length} bytes, too short for a size")
             height = int.from_bytes(data[offset + 3 : offset + 5], "big")
             width = int.from_bytes(data[offset + 5 : offset + 7], "big")
             if width == 0 or height == 0:  # a height given later (DNL): not decoded
-                raise damaged(f"its frame header announces {width} x {height} pixels")
+                raise jpeg_damaged(name, f"its frame header announces {width} x {height} pixels")
             return ImageHeader("jpeg", width, height)
-        offset += length
+    raise jpeg_damaged(name, "the data ends before its frame header")
 
 
-def next_jpeg_marker(data: bytes, offset: int) -> tuple[int, int] | None:
-    """(marker, offset just after it) of the next marker at or after `offset`; None
-    at the end of the data. Fill bytes (FF FF ...) before a marker are swallowed, and
-    other bytes (FF 00 too, a stuffed zero) skipped, as libjpeg's next_marker does."""
-    while True:
-        start = data.find(b"\xff", offset)
+def jpeg_markers(data: bytes, name: str) -> Iterator[tuple[int, int, int]]:
+    """(marker, offset just after it, its segment's length or 0 for a marker that
+    stands alone) of each marker after SOI, in order, as libjpeg's next_marker finds
+    them: fill bytes before a marker swallowed, other bytes (FF 00, a stuffed zero,
+    too) skipped. Ends at the end of the data; the caller stops at the marker it wants.
+
+    Raises:
+        DataError: naming `name`, at a segment whose length is below 2 or runs past
+            the end, or past JPEG_MOST_MARKERS markers and FF 00 pairs.
+    """
+    offset = len(JPEG_START)
+    for _ in range(JPEG_MOST_MARKERS):
+        start = data.find(b"\xff", offset)  # bytes before it skipped, as libjpeg does
         if start < 0:
-            return None
-        offset = start + 1
-        while offset < len(data) and data[offset] == 0xFF:
-            offset += 1
+            return
+        offset = JPEG_FILL.match(data, start).end()  # one C step past any fill bytes
         if offset >= len(data):
-            return None
-        if data[offset] != 0x00:
-            return data[offset], offset + 1
-        offset += 1
+            return
+        marker, offset = data[offset], offset + 1
+        if marker == 0x00:  # FF 00, a stuffed zero: not a marker
+            continue
+        if marker in JPEG_STANDALONE or marker == JPEG_END_OF_IMAGE:
+            yield marker, offset, 0
+            continue
+        if offset + 2 > len(data):
+            raise jpeg_damaged(name, "the data ends inside a segment's length")
+        length = int.from_bytes(data[offset : offset + 2], "big")
+        if length < 2:
+            raise jpeg_damaged(
+                name, f"a segment length of {length}, below the 2 bytes of the length"
+            )
+        if offset + length > len(data):
+            raise jpeg_damaged(
+                name, f"a segment of {length} bytes at byte {offset} runs past the end"
+            )
+        yield marker, offset, length
+        offset += length
+    raise jpeg_damaged(
+        name,
+        f"more than {JPEG_MOST_MARKERS} markers or FF 00 pairs before its image data, "
+        "where a camera writes fewer than 100 markers",
+    )

@@ -3,6 +3,7 @@ as ITU T.81 B.1.1 defines them (and as libjpeg reads them), a PNG's IHDR as libp
 reads it. Each crafted file is checked against what OpenCV's decoder makes of it."""
 
 import struct
+import time
 import zlib
 
 import cv2
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from relocfw.core.errors import DataError
-from relocfw.core.image_headers import ImageHeader, read_header
+from relocfw.core.image_headers import JPEG_START, ImageHeader, read_header
 from relocfw.core.imaging import read_rgb
 from relocfw.serve.images import decode_image
 
@@ -84,17 +85,57 @@ def test_restart_markers_fill_bytes_and_soi_stand_alone():
     crafted = real[:2] + standalone + b"\xff" * 5 + segment(COM, b"hi") + real[2:]
     assert decoded_size(crafted) == (20, 30)
     assert read_header(crafted, "x.jpg") == ImageHeader("jpeg", 20, 30)
+    # Bytes between segments, stuffed zeros among them, are skipped (libjpeg warns);
+    # here after APP0 (OpenCV takes a file for JPEG by FF D8 FF).
+    padded = real[:20] + b"\x00\x17\xff\x00\xff\xff\x00" + real[20:]
+    assert decoded_size(padded) == (20, 30)
+    assert read_header(padded, "x.jpg") == ImageHeader("jpeg", 20, 30)
 
 
 def test_progressive_and_other_frame_kinds_are_frame_headers():
     progressive = jpeg(40, 24, progressive=1)
     assert b"\xff\xc2" in progressive  # SOF2
     assert read_header(progressive, "p.jpg") == ImageHeader("jpeg", 24, 40)
-    # DHT (C4), JPG (C8) and DAC (CC) are not frame headers, whatever they hold.
-    for marker in (0xC4, 0xCC):
-        crafted = progressive[:2] + segment(marker, struct.pack(">BHHB", 8, 9, 9, 3)) + b""
-        crafted += progressive[2:]
-        assert read_header(crafted, "p.jpg").width == 24
+    # DHT (C4), JPG (C8) and DAC (CC) are not frame headers, whatever they hold (libjpeg
+    # refuses a file with JPG before its frame: the reader's answer is never the size).
+    for marker in (0xC4, 0xC8, 0xCC):
+        fake = segment(marker, struct.pack(">BHHB", 8, 9, 9, 3))
+        crafted = progressive[:2] + fake + progressive[2:]
+        assert read_header(crafted, "p.jpg") == ImageHeader("jpeg", 24, 40)
+
+
+def test_a_frame_height_given_later_dnl_is_refused_as_libjpeg_refuses_it():
+    real = jpeg(48, 64)
+    at = real.index(b"\xff\xc0")
+    no_height = real[: at + 5] + struct.pack(">H", 0) + real[at + 7 :]
+    assert cv2.imdecode(np.frombuffer(no_height, np.uint8), cv2.IMREAD_COLOR) is None
+    with pytest.raises(DataError, match=r"damaged JPEG header \(its frame header announces 64 x 0"):
+        read_header(no_height, "x.jpg")
+
+
+def exif_with_thumbnail(thumbnail: bytes) -> bytes:
+    """An APP1 Exif segment as a camera writes it: IFD0 (orientation 1), then IFD1
+    pointing at a JPEG thumbnail held inside the segment (its own SOI, SOF, EOI)."""
+    ifd0 = struct.pack("<H", 1) + struct.pack("<HHII", 0x0112, 3, 1, 1) + struct.pack("<I", 26)
+    thumbnail_at = 26 + 2 + 2 * 12 + 4
+    ifd1 = struct.pack("<H", 2)
+    ifd1 += struct.pack("<HHII", 0x0201, 4, 1, thumbnail_at)  # JPEGInterchangeFormat
+    ifd1 += struct.pack("<HHII", 0x0202, 4, 1, len(thumbnail))  # ...Length
+    ifd1 += struct.pack("<I", 0)
+    tiff = b"II*\x00" + struct.pack("<I", 8) + ifd0 + ifd1 + thumbnail
+    return segment(0xE1, b"Exif\x00\x00" + tiff)
+
+
+def test_a_camera_header_exif_thumbnail_icc_adobe_gives_the_decoded_size():
+    real = jpeg(48, 64)
+    assert real[2:4] == b"\xff\xe0"  # APP0 (JFIF), 20 bytes with SOI: a camera writes Exif
+    thumbnail = jpeg(12, 16)
+    icc = segment(0xE2, b"ICC_PROFILE\x00\x01\x01" + bytes(range(256)) * 2)
+    adobe = segment(0xEE, b"Adobe" + struct.pack(">HHHB", 100, 0, 0, 1))  # YCbCr
+    camera = real[:2] + exif_with_thumbnail(thumbnail) + icc + adobe + real[20:]
+    assert camera.index(b"\xff\xc0") < camera.rindex(b"\xff\xc0")  # the thumbnail's first
+    assert decoded_size(camera) == (64, 48)
+    assert read_header(camera, "camera.jpg") == ImageHeader("jpeg", 64, 48)
 
 
 @pytest.mark.parametrize(
@@ -176,3 +217,38 @@ def test_the_size_read_is_the_size_opencv_decodes(params, height, width, channel
         data = cv2.imencode(extension, image, options)[1].tobytes()
         header = read_header(data, "x")
         assert (header.width, header.height) == decoded_size(data) == (width, height)
+
+
+# 20 MB header bodies that cost a marker-by-marker reader one Python step per few
+# bytes (seconds holding the GIL in the service's threadpool).
+CPU_TRAPS = {
+    "4-byte COM segments": b"\xff\xfe\x00\x02" * 5_000_000,
+    "TEM markers": b"\xff\x01" * 10_000_000,
+    "stuffed zeros (FF 00)": b"\xff\x00" * 10_000_000,
+    "fill bytes": b"\xff" * 20_000_000,
+    "bytes between segments": b"\x00" * 20_000_000,
+}
+
+
+@pytest.mark.parametrize("body", list(CPU_TRAPS.values()), ids=list(CPU_TRAPS))
+def test_a_header_built_to_burn_cpu_is_answered_at_once(body):
+    crafted = JPEG_START + body + jpeg()[2:]
+    started = time.perf_counter()
+    try:
+        header = read_header(crafted, "x.jpg")
+    except DataError as refused:
+        assert str(refused).startswith("x.jpg: damaged JPEG header (")
+    else:  # what libjpeg decodes: the real frame after the skipped bytes
+        assert header == ImageHeader("jpeg", 64, 48)
+    seconds = time.perf_counter() - started
+    assert seconds < 2, f"{seconds:.1f} s"  # well under 0.5 s; 2 for a busy CI
+
+
+def test_more_markers_before_the_frame_header_than_a_camera_writes_are_refused():
+    real = jpeg()
+    # 255 ICC chunks (APP2, the most a profile may be split into) are read past.
+    icc = b"".join(segment(0xE2, b"ICC_PROFILE\x00" + bytes([n, 255]) + b"p") for n in range(255))
+    assert read_header(real[:2] + icc + real[2:], "x.jpg") == ImageHeader("jpeg", 64, 48)
+    comments = segment(COM, b"c") * 1100
+    with pytest.raises(DataError, match=r"^x\.jpg: damaged JPEG header \(more than 1024 markers"):
+        read_header(real[:2] + comments + real[2:], "x.jpg")
