@@ -44,13 +44,37 @@ def test_a_thin_file_is_listed_under_skip_and_a_raised_limit_localizes_it(
     table = (raised / "localization.csv").read_text()
     assert str(images / "b.png") in table
 
+
+CAPPED = ("query.max_aspect=300", "query.max_candidates=100", "query.queries_at_once=2")
+
+
+def test_a_query_refused_after_its_header_is_a_skipped_frame_in_a_group(
+    model,  # noqa: F811
+    images,
+    tmp_path,
+):
+    # b.png (200 x 1) asks for 200 windows, past query.max_candidates=100; it is
+    # grouped with a.png (queries_at_once=2), which is still answered.
+    skipped_run = tmp_path / "skip"
+    result = localize(model, images, skipped_run, *CAPPED, "localize.on_error=skip")
+    assert result.returncode == 0, result.stderr
+    (skipped,) = (skipped_run / "skipped.txt").read_text().splitlines()
+    assert skipped.startswith(
+        f"{images / 'b.png'}: the crop search asks for 200 candidate windows of the 200 x 1 "
+        "query image, more than query.max_candidates=100 allows"
+    )
+    table = (skipped_run / "localization.csv").read_text()
+    assert str(images / "a.png") in table and str(images / "c.png") in table
+    assert str(images / "b.png") not in table
+
     capped = tmp_path / "capped"
-    result = localize(model, images, capped, "query.max_aspect=300", "query.max_candidates=100")
+    result = localize(model, images, capped, *CAPPED)
     assert result.returncode == 2
     assert result.stderr.splitlines()[-1].startswith(
-        "error: the crop search asks for 200 candidate windows of the 200 x 1 query image, "
-        "more than query.max_candidates=100 allows"
+        f"error: {images / 'b.png'}: the crop search asks for 200 candidate windows"
     )
+    rows = (capped / "localization.csv.partial").read_text()  # the frame before it kept
+    assert str(images / "a.png") in rows and str(images / "b.png") not in rows
 
 
 def test_a_thin_frame_of_a_stream_is_refused_on_its_pixels_as_a_frame(tmp_path):

@@ -9,8 +9,8 @@ file's content (nothing is written beside the model file).
 (with `localize.topic`); relocfw.data.streams reads each as one stream of frames,
 decoded one at a time. Answers are written as they are made (AnswerFiles), so memory
 stays flat and a run that stops keeps every pose it made. A frame that cannot be
-decoded stops the run (`localize.on_error=fail`) or is listed in skipped.txt
-(`localize.on_error=skip`).
+decoded or whose query is refused (query.max_aspect, query.max_candidates) stops the
+run (`localize.on_error=fail`) or is listed in skipped.txt (`localize.on_error=skip`).
 """
 
 from __future__ import annotations
@@ -131,9 +131,11 @@ def localize_frames(
             Relocalizer's options say how many frames at once (queries_at_once).
         frames: in stream order, decoded as they are reached.
         total: frames expected, for the progress bar; None when unknown.
-        on_error: "fail": a frame that cannot be decoded stops the run with one
-            DataError naming it, after the frames before it are answered and written;
-            "skip": it is listed in skipped.txt and the run goes on.
+        on_error: "fail": a frame that cannot be decoded, or whose query is refused
+            (thinner than query.max_aspect, more windows than query.max_candidates),
+            stops the run with one DataError naming it, after the frames before it are
+            answered and written; "skip": it is listed in skipped.txt with its message
+            and the run goes on.
         recording: the stream's name for a refiner that reads recordings
             (refine=sequence); None for image files, whose folders name theirs.
     """
@@ -146,15 +148,35 @@ def localize_frames(
     files = AnswerFiles(run_dir)
     waiting: list[Waiting] = []
 
-    def answer_waiting() -> None:
-        if not waiting:
+    def answer(batch: list[Waiting], size: int) -> None:
+        """Answer `batch`, `size` queries at once. A query refused after its frame
+        was decoded (a DataError: its crop search asks for more than
+        query.max_candidates windows, its strip cannot be allocated) is a frame that
+        on_error handles, named by the frame; in a group, the group's frames are then
+        answered one at a time (the same answers) to tell it from the others."""
+        try:
+            found = localize_group(relocalizer, batch, size)
+        except DataError as error:
+            if len(batch) > 1:
+                for item in batch:
+                    answer([item], 1)
+                return
+            frame = batch[0].frame
+            message = f"{frame.name}: {error}"
+            if on_error == "fail":
+                raise DataError(message) from error
+            files.skip(StreamFrame(frame.name, frame.timestamp, None, message))
+            progress.advance(1)
             return
-        found = localize_group(relocalizer, waiting, group)
-        for item, answer in zip(waiting, found, strict=True):
-            files.write(item.frame, answer, 1000.0 * (item.decode_seconds + answer.seconds))
+        for item, result in zip(batch, found, strict=True):
+            files.write(item.frame, result, 1000.0 * (item.decode_seconds + result.seconds))
         files.flush()
-        progress.advance(len(waiting))
-        waiting.clear()
+        progress.advance(len(batch))
+
+    def answer_waiting() -> None:
+        if waiting:
+            answer(waiting, group)
+            waiting.clear()
 
     finished = False
     stream = iter(frames)
