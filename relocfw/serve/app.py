@@ -34,7 +34,7 @@ from relocfw.serve.body_budget import BodyBudget, BodyBudgetError
 from relocfw.serve.fields import FieldError, parse_fields
 from relocfw.serve.guard import CLIENT_LEFT, LOG, ASGIApp, Guarded, over_capacity, refusal
 from relocfw.serve.images import MediaTypeError, check_content_type, decode_image
-from relocfw.serve.queue import QueryQueue, QueueFullError
+from relocfw.serve.queue import QueryQueue, QueueFullError, WorkersLostError
 from relocfw.serve.settings import ServeSettings
 from relocfw.serve.workers import Query as LocalizeQuery
 
@@ -290,6 +290,9 @@ def create_app(service: Service) -> FastAPI:
             answer = await queue.run(
                 LocalizeQuery(image, camera, fields.name), client_left(request)
             )
+        except WorkersLostError as error:
+            LOG.error("relocfw serve: %s", error)
+            return refusal(503, str(error))
         finally:
             if not handed_over:
                 queue.release()

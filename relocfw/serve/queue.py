@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Awaitable
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 
 from relocfw.core.values import Localization
@@ -23,6 +24,17 @@ from relocfw.serve.workers import Query, Workers
 
 class QueueFullError(Exception):
     """max_pending queries are admitted already."""
+
+
+class WorkersLostError(Exception):
+    """A worker process ended while the service runs (killed, e.g. out of memory): its
+    pool answers no more queries (answered 503)."""
+
+    def __init__(self) -> None:
+        super().__init__(
+            "a worker process of the service has ended (killed, or out of memory?): "
+            "it answers no more queries until it is restarted"
+        )
 
 
 @dataclass
@@ -69,12 +81,18 @@ class QueryQueue:
 
     async def run(self, query: Query, client_left: Awaitable[None]) -> Localization | None:
         """The answer to a query that holds a place (`reserve`), or None when the caller
-        left before it came; the place is freed when the job is done, not before."""
+        left before it came; the place is freed when the job is done, not before.
+
+        Raises:
+            WorkersLostError: a worker process has ended (serve.workers > 1).
+        """
         loop = asyncio.get_running_loop()
         try:
             job = self.workers.submit(query)
-        except BaseException:  # the workers are shut down: no job holds the place
+        except BaseException as error:  # no job holds the place
             self.release()
+            if isinstance(error, BrokenProcessPool):
+                raise WorkersLostError from None
             raise
         job.add_done_callback(lambda _: self.release_from(loop))
         answer = asyncio.wrap_future(job)
@@ -87,8 +105,12 @@ class QueryQueue:
         finally:
             watch.cancel()
         if answer in done:
+            try:
+                localization = answer.result()
+            except BrokenProcessPool:
+                raise WorkersLostError from None
             self.counts.answered += 1
-            return answer.result()
+            return localization
         answer.cancel()  # cancels the job too where it has not started
         self.counts.abandoned += 1
         return None

@@ -12,6 +12,7 @@ import concurrent.futures as futures
 import functools
 import multiprocessing
 import os
+import signal
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -46,7 +47,15 @@ def answer(relocalizer: Relocalizer, query: Query) -> Localization:
 
 
 def start_worker(loader: Loader, threads: int) -> None:
-    """A worker process's initializer: its share of the cores, then its model."""
+    """A worker process's initializer: deaf to the stop signals, its share of the
+    cores, then its model.
+
+    A terminal's Ctrl-C and systemd's stop signal the whole process group, workers
+    included; a worker that died of them would fail the queries the server is still
+    draining. The server owns the workers' lifetime: its executor's shutdown ends them
+    once their queries are answered."""
+    for stop in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(stop, signal.SIG_IGN)
     torch.set_num_threads(threads)
     THIS_PROCESS["relocalizer"] = loader()
 
