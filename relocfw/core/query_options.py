@@ -25,13 +25,13 @@ from relocfw.core.options import integer_at_least, real_number
 SCORINGS = ("plain", "shared", "scout")
 # Scorings whose distances only rank candidates: the chosen crop is then scored plainly.
 RANKING_SCORINGS = ("shared", "scout")
-# Options that left QueryOptions, and where they went (one clear refusal, not "unknown").
 # The most distinct candidate windows a query's crop search may ask to score. A sweep
 # (crop=sweep, crop=rule) asks for every window along the long side: (aspect - 1) x
 # the window side + 1, so 2305 for the thinnest image MAX_ASPECT lets through with a
 # 224 network trained at crop_scale 256/224 (a 640 x 480 frame: 86). 4096 keeps every
 # search's answers on such images, and bounds a query at about 50 times a frame's work.
 MAX_CANDIDATES = 4096
+# Options that left QueryOptions, and where they went (one clear refusal, not "unknown").
 MOVED_OUT = {
     "retrieval_k": "the retrieval baseline is a refiner now: refine=retrieval refine.k=K "
     "(in Python: Relocalizer(..., refiner=RetrievalRefiner(k=K)), "

@@ -14,6 +14,7 @@ from relocfw import QueryOptions, Relocalizer
 from relocfw.core import imaging
 from relocfw.core.errors import ConfigError, DataError
 from relocfw.core.imaging import Strip, read_rgb
+from relocfw.core.interfaces import SearchQuery
 from relocfw.core.values import Pose
 from relocfw.data.frames import Frame, read_images
 from relocfw.data.intrinsics import image_size
@@ -113,11 +114,13 @@ def test_every_crop_search_is_capped_before_any_window_is_scored(search):
 def test_the_default_cap_leaves_a_sweep_of_the_thinnest_image_allowed():
     options = QueryOptions()
     assert (options.max_aspect, options.max_candidates) == (10.0, 4096)
-    # A 224 network trained at crop_scale 256/224 cuts 256-pixel windows: a sweep of a
-    # 10:1 image asks for (10 - 1) x 256 + 1 of them.
-    strip = Strip(np.zeros((1, 10, 3), np.uint8), 224, 256 / 224)
-    windows = {strip.window(imaging.crop_at(o, 10, 1)) for o in range(10)}
-    assert options.max_candidates >= (10 - 1) * 256 + 1 and len(windows) == 10
+    # A 224 network trained at crop_scale 256/224 cuts 256-pixel windows from the
+    # strip: a sweep of a 10:1 image asks for (10 - 1) x 256 + 1 distinct ones.
+    strip = Strip(np.zeros((400, 4000, 3), np.uint8), 224, 256 / 224)
+    crops = next(SweepCrop().propose(SearchQuery(4000, 400)))
+    windows = {strip.window(crop) for crop in crops}
+    assert (len(crops), len(windows)) == (3601, 2305)
+    assert len(windows) <= options.max_candidates
 
 
 @pytest.mark.parametrize(
