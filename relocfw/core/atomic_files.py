@@ -7,6 +7,7 @@ figures are all written through here.
 Folders of files are written the same way: into a staging folder beside their place
 (`staging_folder`, locked while written) and renamed into place when complete
 (`publish_folder`); `remove_stale_folders` clears the ones killed writers left.
+Writers that publish in turn hold `file_lock` on a lock file beside their target.
 
 Several runs may share one cache folder. A writer holds an exclusive advisory lock
 (flock) on its temporary for as long as the temporary exists, so
@@ -151,9 +152,13 @@ def staging_folder(parent: Path, prefix: str) -> tuple[Path, int]:
     """A new hidden folder in `parent` (named `prefix` + a random part) to write files
     into before they are published, and an open handle of it holding an exclusive lock
     (as `atomic_write` holds its temporary's) until `release_folder`: so
-    `remove_stale_folders` tells a live writer's folder from a killed one's."""
+    `remove_stale_folders` tells a live writer's folder from a killed one's. Without
+    flock (Windows, where a folder cannot be opened either) the handle is -1 and
+    clean-up goes by age alone."""
     parent.mkdir(parents=True, exist_ok=True)
     folder = Path(tempfile.mkdtemp(prefix=prefix, dir=parent))
+    if fcntl is None:
+        return folder, -1
     handle = os.open(folder, os.O_RDONLY)
     hold_exclusive_lock(handle)
     return folder, handle
@@ -161,6 +166,8 @@ def staging_folder(parent: Path, prefix: str) -> tuple[Path, int]:
 
 def release_folder(handle: int) -> None:
     """Close a `staging_folder`'s handle (its lock goes with it)."""
+    if handle < 0:
+        return
     with suppress(OSError):
         os.close(handle)
 
@@ -182,7 +189,8 @@ def remove_stale_folders(parent: Path, prefix: str) -> list[Path]:
                 continue
             if now - folder.stat().st_mtime < grace:
                 continue
-            handle = os.open(folder, os.O_RDONLY)
+            # Without flock the age alone tells (and a folder cannot be opened there).
+            handle = -1 if fcntl is None else os.open(folder, os.O_RDONLY)
         except OSError:  # gone already (its writer published it) or unreadable
             continue
         try:
@@ -194,20 +202,35 @@ def remove_stale_folders(parent: Path, prefix: str) -> list[Path]:
             shutil.rmtree(folder, ignore_errors=True)
             removed.append(folder)
         finally:
-            os.close(handle)
+            release_folder(handle)
     return removed
 
 
 @contextmanager
-def folder_lock(folder: Path) -> Iterator[None]:
-    """An exclusive lock on `folder` itself for the block (no-op without flock): the
-    writers that publish into one folder take turns, and leave no lock file behind."""
-    handle = os.open(folder, os.O_RDONLY)
+def file_lock(path: Path) -> Iterator[None]:
+    """An exclusive lock on the file `path` (created if missing, and left in place: a
+    lock file removed while another process waits on it would let a third in) for
+    the block, so writers take turns.
+
+    Only a courtesy: without flock (Windows), where the lock file cannot be opened for
+    writing, or where flock does nothing (some network mounts) the block runs
+    unlocked, so what it does must be safe without the lock.
+    """
+    if fcntl is None:
+        yield
+        return
     try:
-        hold_exclusive_lock(handle)
+        # Read-write: over NFS an exclusive flock needs a descriptor open for writing.
+        handle = os.open(path, os.O_RDWR | os.O_CREAT, USUAL_MODE)
+    except OSError:
+        handle = -1
+    try:
+        if handle >= 0:
+            hold_exclusive_lock(handle)
         yield
     finally:
-        os.close(handle)
+        if handle >= 0:
+            os.close(handle)
 
 
 def write_text_atomic(text: str, path: Path) -> None:

@@ -128,8 +128,10 @@ class CompactMap:
         self.poses = arrays["poses"]
         self.cameras = arrays["cameras"]
         self.names = arrays["names"]
-        # The folder the files were read from (`open`: the version its link named).
+        # The folder the files were read from (`open`: the version its link named),
+        # and their bytes on disk.
         self.version: Path | None = None
+        self.stored_bytes = 0
 
     @classmethod
     def open(cls, folder: str | Path) -> CompactMap:
@@ -167,6 +169,10 @@ class CompactMap:
         check_arrays(arrays, meta, codec, lambda name: str(folder / f"{name}.npy"))
         compact = cls(folder, meta["source"], codec, arrays)
         compact.version = version
+        try:
+            compact.stored_bytes = sum(p.stat().st_size for p in version.iterdir() if p.is_file())
+        except OSError as error:  # removed meanwhile: `open` reads the current version
+            raise DataError(f"cannot read {folder} ({error})") from None
         return compact
 
     @classmethod
@@ -313,10 +319,10 @@ class CompactMap:
         )
 
     def file_bytes(self) -> int:
-        """The folder's size on disk: every file of the map (0 in memory)."""
-        if self.folder is None:
-            return 0
-        return sum(path.stat().st_size for path in self.folder.iterdir() if path.is_file())
+        """The map's size on disk: every file of the version opened, counted when it
+        was opened (0 in memory), so a writer publishing another version meanwhile
+        (and removing this one) changes nothing."""
+        return self.stored_bytes
 
     def resident_bytes(self) -> int:
         """What opening holds in memory: the arrays read whole (not the mapped ones)."""

@@ -11,14 +11,29 @@ to a hidden staging folder beside the target, map.json last. When complete it is
 renamed to a version folder (`.<name>.version-<random>`) and the target, a symbolic
 link to the current version, is swapped to it by one rename: a reader resolves the
 link once and reads one whole version (relocfw.structure.compact_map), never half of
-one and half of another. Writers publish in turn (a lock on the parent folder), and
-each removes the versions that are no longer current, so two writers of one map both
-succeed, the last one's map stays, and nothing else is left. A reader that resolved
-a version just removed opens the current one (CompactMap.open retries). An exception
-leaves the target as it was; a kill leaves a staging folder, which the next writer of
-the map removes (relocfw.core.atomic_files.remove_stale_folders). An existing compact
-map at the target (a link, or the plain folder of an older relocfw) is replaced; any
-other existing folder is refused, never deleted.
+one and half of another. Writers publish in turn (a lock file `.<name>.lock` beside
+the map), but nothing relies on that lock, which does nothing where flock does
+nothing (some network mounts) or is missing (Windows): a writer reads the version the
+link names just before its swap and, after it, removes that one version only (no
+writer swaps a link to a version already swapped in, so it is never current again);
+any other version, and any `.<name>.link-*` a killed writer left, is removed only
+when an hour old and not named by the link. So two writers of one map both succeed,
+the last one's map stays, and the name never points at a removed version. A reader
+that resolved a version just removed opens the current one (CompactMap.open retries).
+
+An exception leaves the target as it was and nothing of the writer's, with one
+exception: a map an older relocfw wrote as a plain folder is moved aside before the
+link is swapped in (a rename cannot replace a folder by a link), so for that one
+moment, or after a failure that cannot even move it back, the name holds nothing. A
+kill leaves a staging folder, which the next writer of the map removes
+(relocfw.core.atomic_files.remove_stale_folders). An existing compact map at the
+target (a link, or a plain folder) is replaced; any other existing folder is
+refused, never deleted.
+
+Where symbolic links are refused (vfat, exFAT, SMB shares, Windows without the
+right) the map is published as a plain folder, as older relocfw did: the existing
+map moved aside, the staging folder renamed to the target, the old one removed. A
+reader there may find no map for that instant, and two writers may race.
 
 `save_compact_map` writes a StructureMap this way: the rows with a 3-D point, their
 points moved into their image's camera frame, descriptors coded with the codec.
@@ -30,14 +45,16 @@ import hashlib
 import json
 import os
 import shutil
+import time
 from collections.abc import Sequence
+from contextlib import suppress
 from pathlib import Path
 from typing import IO
 
 import numpy as np
 
 from relocfw.core.atomic_files import (
-    folder_lock,
+    file_lock,
     release_folder,
     remove_stale_folders,
     staging_folder,
@@ -56,6 +73,11 @@ from relocfw.structure.compact_map import (
 )
 from relocfw.structure.descriptor_codes import DescriptorCodec, grid_codec
 from relocfw.structure.structure_map import SOURCES, StructureMap
+
+# A version or link of a map older than this and not named by its link is a killed
+# writer's or a race's leftover (see `abandoned`); an hour, as a live writer needs
+# milliseconds between making one and swapping it in, and a leftover costs only disk.
+ABANDONED_SECONDS = 3600.0
 
 
 class CompactMapWriter:
@@ -114,10 +136,14 @@ class CompactMapWriter:
         return self
 
     def __exit__(self, kind: object, error: object, trace: object) -> None:
-        if kind is None:
-            self.close()
-        else:
+        if kind is not None:
             self.abort()
+            return
+        try:
+            self.close()
+        except BaseException:
+            self.abort()  # a failed finish leaves no staging folder either
+            raise
 
     def add(
         self,
@@ -217,19 +243,27 @@ class CompactMapWriter:
 
     def publish(self) -> None:
         """Make the finished staging folder the map (see the module's note): renamed
-        to a version, the target's link swapped to it, older versions removed."""
+        to a version, the target's link swapped to it, the versions it replaced
+        removed after the lock is given back."""
         try:
-            with folder_lock(self.folder.parent):
-                publish_version(self.staging, self.folder)
+            with file_lock(lock_file(self.folder)):
+                unused = publish_staging(self.staging, self.folder)
         finally:
-            release_folder(self.staging_lock)
+            self.release()
+        remove_unused(unused)
 
     def abort(self) -> None:
         """Drop everything written (the target is left as it was)."""
         for stream in self.streams.values():
             stream.close()
         shutil.rmtree(self.staging, ignore_errors=True)
+        self.release()
+
+    def release(self) -> None:
+        """Give back the staging folder's lock, once (its descriptor's number may be
+        another file's after it is closed)."""
         release_folder(self.staging_lock)
+        self.staging_lock = -1
 
 
 def staging_prefix(folder: Path) -> str:
@@ -242,25 +276,122 @@ def version_prefix(folder: Path) -> str:
     return f".{folder.name}.version-"
 
 
-def publish_version(staging: Path, folder: Path) -> None:
-    """Rename `staging` to a version of `folder`, point `folder` (a link) at it by one
-    rename, and remove every other version; the caller holds the parent's lock, so no
-    other writer is between these steps."""
+def link_prefix(folder: Path) -> str:
+    """How a writer's new link to its version is named before it is swapped in."""
+    return f".{folder.name}.link-"
+
+
+def lock_file(folder: Path) -> Path:
+    """The file the writers of the map `folder` lock to publish in turn."""
+    return folder.parent / f".{folder.name}.lock"
+
+
+def linked_version(folder: Path) -> Path | None:
+    """The version the link `folder` names now, or None (no link, or a link to
+    anything but a version of this map beside it: never ours to remove)."""
+    try:
+        target = os.readlink(folder)
+    except (OSError, ValueError):
+        return None
+    if os.sep in target or (os.altsep and os.altsep in target):
+        return None
+    if not target.startswith(version_prefix(folder)):
+        return None
+    return folder.parent / target
+
+
+def publish_staging(staging: Path, folder: Path) -> list[Path]:
+    """Publish the finished `staging` as the map `folder` (see the module's note);
+    the folders and links it replaced, for `remove_unused` once the lock is given
+    back. On a failure before the swap nothing of this writer's is left and the map
+    stays as it was (a plain-folder map being moved aside is put back)."""
     token = staging.name.rsplit("-", 1)[-1]
     version = folder.parent / f"{version_prefix(folder)}{token}"
-    os.replace(staging, version)
-    link = folder.parent / f".{folder.name}.link-{token}"
-    link.unlink(missing_ok=True)
-    # Relative: the map's folder may be moved or mounted elsewhere whole.
-    os.symlink(version.name, link)
-    if folder.is_dir() and not folder.is_symlink():
-        # A map an older relocfw wrote as a plain folder: moved aside first (a rename
-        # cannot replace a folder by a link); its readers see the new map or none.
-        os.replace(folder, folder.parent / f"{version_prefix(folder)}{token}-older")
-    os.replace(link, folder)
-    for other in folder.parent.glob(f"{version_prefix(folder)}*"):
-        if other != version:
-            shutil.rmtree(other, ignore_errors=True)
+    link = folder.parent / f"{link_prefix(folder)}{token}"
+    try:
+        # Relative: the map's folder may be moved or mounted elsewhere whole. Made
+        # before the version exists (a link may dangle), so a file system that refuses
+        # links (vfat, exFAT, SMB, Windows without the right) publishes a plain folder
+        # before any version is made.
+        os.symlink(version.name, link, target_is_directory=True)
+    except (OSError, NotImplementedError):
+        return publish_plain(staging, folder, token)
+    aside = None
+    try:
+        # A fresh age, so no other writer's sweep (`abandoned`) takes it for a killed
+        # writer's in the instant before the swap.
+        os.utime(staging)
+        os.replace(staging, version)
+        # Read before the swap: the one version this writer replaces. A version named
+        # by the link was swapped in already, so no writer swaps to it again and
+        # removing it after the swap cannot leave the name on a removed version.
+        previous = linked_version(folder)
+        if folder.is_dir() and not folder.is_symlink():
+            # A map an older relocfw wrote as a plain folder: moved aside first (a
+            # rename cannot replace a folder by a link); its readers see the new map
+            # or none, and a failed swap puts it back.
+            aside = folder.parent / f"{version_prefix(folder)}{token}-older"
+            os.replace(folder, aside)
+            previous = aside
+        os.replace(link, folder)
+    except BaseException:
+        if aside is not None:
+            with suppress(OSError):
+                os.replace(aside, folder)
+        link.unlink(missing_ok=True)
+        shutil.rmtree(version, ignore_errors=True)
+        raise
+    return [p for p in (previous,) if p is not None] + abandoned(folder)
+
+
+def publish_plain(staging: Path, folder: Path, token: str) -> list[Path]:
+    """Publish `staging` as `folder` itself where links are refused: the map there (a
+    folder, or a link another system made) moved aside, the staging folder renamed
+    into place; returns what was moved aside (and the version a link named)."""
+    aside = None
+    if os.path.lexists(folder):
+        aside = folder.parent / f"{version_prefix(folder)}{token}-older"
+        previous = linked_version(folder)
+        os.replace(folder, aside)
+    try:
+        os.replace(staging, folder)
+    except BaseException:
+        if aside is not None:
+            with suppress(OSError):
+                os.replace(aside, folder)
+        raise
+    if aside is None:
+        return []
+    return [aside] + ([previous] if previous is not None else [])
+
+
+def abandoned(folder: Path) -> list[Path]:
+    """Versions and links of the map `folder` that a killed writer left, or that two
+    writers racing without a working lock both replaced: those past
+    ABANDONED_SECONDS and not named by the map's link now (a live writer renames its
+    version and swaps it in within milliseconds)."""
+    current = linked_version(folder)
+    now = time.time()
+    found = []
+    for prefix in (version_prefix(folder), link_prefix(folder)):
+        for path in folder.parent.glob(f"{prefix}*"):
+            try:
+                old = now - path.lstat().st_mtime > ABANDONED_SECONDS
+            except OSError:  # removed meanwhile
+                continue
+            if old and path != current:
+                found.append(path)
+    return found
+
+
+def remove_unused(paths: Sequence[Path]) -> None:
+    """Remove versions (folders) and links no longer named; what is gone already is
+    skipped (another writer removed it)."""
+    for path in paths:
+        if path.is_symlink():
+            path.unlink(missing_ok=True)
+        else:
+            shutil.rmtree(path, ignore_errors=True)
 
 
 class DigestedStream:

@@ -232,11 +232,21 @@ def test_a_folder_that_is_not_a_map_is_never_replaced(tmp_path):
 def test_saving_again_replaces_the_map(depth_structure, saved):
     save_compact_map(depth_structure, saved, None, "float32")
     assert CompactMap.open(saved).points.dtype == np.float32
-    # The map is a link to its one current version; nothing else is left.
-    assert sorted(p.name for p in saved.parent.iterdir()) == sorted(["map", saved.resolve().name])
+    # The map is a link to its one current version; nothing else but its lock is left.
+    beside = sorted(p.name for p in saved.parent.iterdir())
+    assert beside == sorted(["map", saved.resolve().name, ".map.lock"])
 
 
 def test_camera_frame_points_lie_in_front(depth_structure):
     rows = with_points(depth_structure, 0)
     points = camera_frame(depth_structure.points[0][rows], depth_structure.poses[0])
     assert (points[:, 2] > 0).all()
+
+
+def test_the_size_on_disk_is_the_opened_versions_while_another_is_published(depth_structure, saved):
+    compact = CompactMap.open(saved)
+    before = compact.file_bytes()
+    assert before == sum(p.stat().st_size for p in saved.iterdir())
+    save_compact_map(depth_structure, saved, None, "float32")  # removes the opened version
+    assert compact.file_bytes() == before
+    assert CompactMap.open(saved).file_bytes() > before  # float32 points

@@ -1,9 +1,11 @@
 """Two processes writing the same compact map, and a third reading it meanwhile: every
 write succeeds (the last one wins), no staging folder is left, and the reader only
-ever opens a whole map, one of the two written."""
+ever opens a whole map, one of the two written; with the writers' lock and where
+flock does nothing (NFS)."""
 
 from __future__ import annotations
 
+import errno
 import multiprocessing
 import os
 import time
@@ -14,6 +16,8 @@ import pytest
 
 from relocfw.structure.compact_map import CompactMap
 from relocfw.structure.compact_writer import save_compact_map
+
+fcntl = pytest.importorskip("fcntl")  # POSIX: flock
 
 pytestmark = pytest.mark.skipif(os.name != "posix", reason="fork and symlinks are POSIX")
 
@@ -41,34 +45,64 @@ def read_often(folder, stop, errors, reads) -> None:
     reads.put(count)
 
 
-def test_two_writers_and_a_reader_race_without_a_fault(depth_structure, tmp_path):
+@pytest.mark.parametrize("lock_works", [True, False])
+def test_two_writers_and_a_reader_race_without_a_fault(
+    depth_structure, tmp_path, monkeypatch, lock_works
+):
+    if not lock_works:
+        # flock that does nothing (NFS): the writers race through their publishes.
+        def no_lock(handle, operation):
+            raise OSError(errno.ENOLCK, "No locks available")
+
+        monkeypatch.setattr(fcntl, "flock", no_lock)
     folder = tmp_path / "map"
     save_compact_map(depth_structure, folder)
     context = multiprocessing.get_context("fork")  # the map and imports are inherited
     errors, reads, stop = context.Queue(), context.Queue(), context.Event()
     writers = [
-        context.Process(target=write_often, args=(depth_structure, folder, dtype, errors))
+        context.Process(
+            target=write_often, args=(depth_structure, folder, dtype, errors), daemon=True
+        )
         for dtype in ("float16", "float32")
     ]
-    reader = context.Process(target=read_often, args=(folder, stop, errors, reads))
-    reader.start()
-    for writer in writers:
-        writer.start()
-    for writer in writers:
-        writer.join(timeout=120)
-    stop.set()
-    reader.join(timeout=60)
+    reader = context.Process(target=read_often, args=(folder, stop, errors, reads), daemon=True)
+    try:
+        reader.start()
+        for writer in writers:
+            writer.start()
+        for writer in writers:
+            writer.join(timeout=120)
+        stop.set()
+        reader.join(timeout=60)
+    finally:
+        # A stuck child must not hang pytest: stopped here (its exit code then fails).
+        for child in (*writers, reader):
+            if child.is_alive():
+                child.terminate()
+                child.join(timeout=10)
     faults = []
     while not errors.empty():
         faults.append(errors.get())
     assert faults == [], faults[0]
     assert all(p.exitcode == 0 for p in (*writers, reader))
     assert reads.get(timeout=10) > 0
-    # Nothing but the map is left beside it (its current version included).
+    # Nothing but the map is left beside it: its current version and the writers' lock.
+    # Unlocked, a version two writers both replaced stays until it is an hour old.
     compact = CompactMap.open(folder)
     assert len(compact) == len(depth_structure)
-    leftovers = [p.name for p in tmp_path.iterdir() if p.name != "map"]
-    assert len(leftovers) <= 1 and all(folder.resolve().name == n for n in leftovers), leftovers
+    beside = sorted(p.name for p in tmp_path.iterdir())
+    if lock_works:
+        assert beside == beside_the_map(folder)
+    else:
+        others = [n for n in beside if n not in beside_the_map(folder)]
+        assert set(beside_the_map(folder)) <= set(beside)
+        assert all(n.startswith(".map.version-") for n in others), others
+
+
+def beside_the_map(folder) -> list[str]:
+    """What a map's folder holds once written: the map's name, the version it names
+    and the lock file its writers take turns by."""
+    return sorted([folder.name, folder.resolve().name, f".{folder.name}.lock"])
 
 
 def test_a_killed_writers_staging_folder_is_cleared_by_the_next_writer(depth_structure, tmp_path):
@@ -79,9 +113,7 @@ def test_a_killed_writers_staging_folder_is_cleared_by_the_next_writer(depth_str
     os.utime(killed, (past, past))
     save_compact_map(depth_structure, tmp_path / "map")
     assert not killed.exists()
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        ["map", (tmp_path / "map").resolve().name]
-    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == beside_the_map(tmp_path / "map")
 
 
 def test_a_map_an_older_relocfw_wrote_as_a_folder_is_replaced(depth_structure, tmp_path):
@@ -93,4 +125,4 @@ def test_a_map_an_older_relocfw_wrote_as_a_folder_is_replaced(depth_structure, t
     assert len(CompactMap.open(folder)) == len(depth_structure)
     save_compact_map(depth_structure, folder, None, "float32")
     assert folder.is_symlink() and CompactMap.open(folder).points.dtype == np.float32
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["map", folder.resolve().name])
+    assert sorted(p.name for p in tmp_path.iterdir()) == beside_the_map(folder)
