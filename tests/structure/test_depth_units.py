@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from relocfw.core.errors import DataError
-from relocfw.structure.depth_structure import build_from_depth
+from relocfw.structure.depth_structure import build_from_depth, depth_of_view
+from relocfw.structure.lifting import lift_keypoints
 
 
 def scaled_depth(view, factor: float, path):
@@ -43,8 +44,26 @@ def test_a_map_whose_depth_is_all_at_a_wrong_scale_is_refused(synthetic_scene, t
         build_from_depth(views, max_features=64, quiet=True)
 
 
-def test_normal_depth_builds_the_same_map_as_before(synthetic_scene, depth_structure):
-    again = build_from_depth(synthetic_scene.views[:2], max_features=1024, quiet=True)
-    assert again.skipped_views == ()
-    for a, b in zip(again.points, depth_structure.points, strict=True):
-        assert np.array_equal(a, b, equal_nan=True)
+# build_from_depth(synthetic_scene.views, max_features=256) as the code before the
+# map-wide depth scale (cdd3080) built it, with OpenCV 5.1: per view, the keypoints
+# with a point and the sum of their coordinates.
+BEFORE = [(256, 866.8886028472334), (256, 793.3055791463703), (256, 889.015332756564)]
+
+
+def test_normal_depth_builds_the_same_map_as_before(synthetic_scene):
+    built = build_from_depth(synthetic_scene.views, max_features=256, quiet=True)
+    assert built.skipped_views == ()
+    for view, features, points in zip(
+        synthetic_scene.views, built.features, built.points, strict=True
+    ):
+        # Each view's keypoints lifted with its own depth map, as one view alone is.
+        depth, reason = depth_of_view(view)
+        assert reason == ""
+        expected = lift_keypoints(features.keypoints, depth, view.camera, view.pose)
+        assert np.array_equal(points, expected, equal_nan=True)
+    found = [
+        (int(np.isfinite(p).all(axis=1).sum()), float(np.nansum(p, dtype=np.float64)))
+        for p in built.points
+    ]
+    assert [count for count, _ in found] == [count for count, _ in BEFORE]
+    assert [total for _, total in found] == pytest.approx([total for _, total in BEFORE], rel=1e-9)
