@@ -40,6 +40,7 @@ JPEG_START = b"\xff\xd8"
 # Markers without a length: SOI, RST0-RST7, TEM (EOI ends the header: handled apart).
 JPEG_STANDALONE = frozenset({0xD8, *range(0xD0, 0xD8), 0x01})
 JPEG_END_OF_IMAGE = 0xD9
+JPEG_END = b"\xff\xd9"
 JPEG_START_OF_SCAN = 0xDA
 # Start-of-frame markers: C0-CF less C4 (DHT), C8 (JPG, reserved) and CC (DAC).
 JPEG_FRAME_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
@@ -126,6 +127,27 @@ def jpeg_header(data: bytes, name: str) -> ImageHeader:
                 raise jpeg_damaged(name, f"its frame header announces {width} x {height} pixels")
             return ImageHeader("jpeg", width, height)
     raise jpeg_damaged(name, "the data ends before its frame header")
+
+
+def jpeg_has_end(data: bytes, name: str) -> bool:
+    """Whether a JPEG's end-of-image marker (EOI, FF D9) follows its first scan.
+
+    The markers are walked to the first start of scan, then its entropy-coded data is
+    searched for FF D9 in one step: an FF there is always followed by 00 (a stuffed
+    zero) or a restart marker, so the first FF D9 after it ends the image (or a later
+    scan's table, rarely: then the file is decoded as OpenCV would). Bytes after EOI (a
+    Motion Photo's video, a Samsung trailer) do not matter; a file cut inside its scans
+    has none. A file without a scan has nothing to cut: True, and the decoder refuses it.
+
+    Raises:
+        DataError: naming `name`, for a damaged header (see jpeg_markers).
+    """
+    for marker, offset, length in jpeg_markers(data, name):
+        if marker == JPEG_START_OF_SCAN:
+            return data.find(JPEG_END, offset + length) >= 0
+        if marker == JPEG_END_OF_IMAGE:
+            return True
+    return False
 
 
 def jpeg_markers(data: bytes, name: str) -> Iterator[tuple[int, int, int]]:

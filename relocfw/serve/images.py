@@ -6,8 +6,9 @@ PNG refused as a depth map, OpenCV's colour decoding: 16-bit colour scaled to 8 
 alpha dropped), plus what a service needs on top: only PNG and JPEG (the two formats
 whose headers are read before decoding, so no other format can announce a
 decompression bomb), a tighter pixel limit (serve.max_pixels) and a JPEG refused when
-its end marker is missing (OpenCV decodes such a file with its missing rows grey and
-only a warning on stderr).
+no end marker follows its image data (OpenCV decodes such a file with its missing rows
+grey and only a warning on stderr; bytes after the end marker, such as a Motion
+Photo's video, are fine).
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import cv2
 import numpy as np
 
 from relocfw.core.errors import DataError
-from relocfw.core.image_headers import JPEG_START, PNG_SIGNATURE
+from relocfw.core.image_headers import JPEG_START, PNG_SIGNATURE, jpeg_has_end
 from relocfw.core.imaging import (
     MAX_ASPECT,
     check_aspect,
@@ -28,7 +29,6 @@ from relocfw.core.imaging import (
 
 # How the imaging checks name what they read: the body, never a path.
 BODY = "the request body"
-JPEG_END = b"\xff\xd9"
 
 
 class MediaTypeError(DataError):
@@ -93,9 +93,11 @@ def decode_image(body: bytes, max_pixels: int, max_aspect: float = MAX_ASPECT) -
         raise DataError(
             "the request body is a 16-bit single-channel PNG (a depth map?), not a colour image"
         )
-    # Trailing zero padding is common; anything else after the data would not be.
-    if kind == "jpeg" and not body.rstrip(b"\x00").endswith(JPEG_END):
-        raise DataError("the request body is a truncated JPEG (its end-of-image marker is missing)")
+    # After the end marker phones put more (a Motion Photo's video): only its absence counts.
+    if kind == "jpeg" and not jpeg_has_end(body, BODY):
+        raise DataError(
+            "the request body is a truncated JPEG (no end-of-image marker after its image data)"
+        )
     try:
         image = cv2.imdecode(data, cv2.IMREAD_COLOR)
     except cv2.error as error:

@@ -57,6 +57,33 @@ def test_decode_image_turns_an_allocation_failure_into_a_data_error(monkeypatch)
         decode_image(png_of(np.zeros((4, 4, 3), np.uint8)), MAX_PIXELS)
 
 
+def jpeg_of(pixels: np.ndarray) -> bytes:
+    return cv2.imencode(".jpg", pixels)[1].tobytes()
+
+
+FRAME = np.random.default_rng(3).integers(0, 256, (36, 48, 3), dtype=np.uint8)
+# What phones write after a JPEG's end: a Pixel Motion Photo's MP4, a Samsung trailer.
+MOTION_PHOTO = jpeg_of(FRAME) + b"\x00\x00\x00\x18ftypmp42\x00\x00\x00\x00" + bytes(range(256))
+SAMSUNG_TRAILER = (
+    jpeg_of(FRAME) + b"\x00\x00\x0a\x01\xff\xd8 data" + b"SEFH" + b"\x01" * 20 + b"SEFT"
+)
+
+
+@pytest.mark.parametrize("body", [MOTION_PHOTO, SAMSUNG_TRAILER], ids=["motion", "samsung"])
+def test_a_jpeg_with_bytes_after_its_end_is_decoded(body):
+    assert cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR).shape == (36, 48, 3)
+    assert decode_image(body, MAX_PIXELS).shape == (36, 48, 3)
+
+
+def test_a_jpeg_cut_inside_its_scan_is_still_refused_as_truncated():
+    whole = jpeg_of(FRAME)
+    progressive = cv2.imencode(".jpg", FRAME, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
+    cut = progressive.rindex(b"\xff\xda")  # a progressive file cut before its last scan
+    for body in (whole[:-2], whole[: len(whole) - 40], whole[:-2] + b"trailing", progressive[:cut]):
+        with pytest.raises(DataError, match=r"^the request body is a truncated JPEG"):
+            decode_image(body, MAX_PIXELS)
+
+
 def test_the_service_answers_thin_images_with_a_400_json(tmp_path):
     model = tiny_model(tmp_path)
     overrides = [f"serve.max_bytes={MAX_BYTES}", f"serve.max_pixels={MAX_PIXELS}"]
@@ -72,6 +99,9 @@ def test_the_service_answers_thin_images_with_a_400_json(tmp_path):
             assert "query.max_aspect=10" in answer.json()["error"]
         good = png_of(np.zeros((36, 48, 3), np.uint8))
         answer = client.post("/v1/localize", content=good, headers={"Content-Type": "image/png"})
+        assert answer.status_code == 200, answer.text
+        headers = {"Content-Type": "image/jpeg"}
+        answer = client.post("/v1/localize", content=MOTION_PHOTO, headers=headers)
         assert answer.status_code == 200, answer.text
 
 
