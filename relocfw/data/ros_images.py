@@ -76,13 +76,25 @@ def colour_image(message: Any, msgtype: str, topic: str) -> np.ndarray:
 
 
 def compressed_colour(message: Any, name: str) -> np.ndarray:
-    """A CompressedImage's RGB pixels; refusals name the message as `name`."""
+    """A CompressedImage's RGB pixels; refusals name the message as `name`.
+
+    Only PNG and JPEG are decoded (the formats image_transport writes), as the service
+    decodes only those: their headers are read before decoding, while another format
+    (TIFF, WebP, GIF) could announce up to OpenCV's own 2^30 pixels.
+    """
     data = np.asarray(message.data, dtype=np.uint8)
     what = f"compressed image ({message.format})"
-    check_header(data, f"{name}: {what}")  # no aspect limit here: see colour_image
+    if data.size == 0:
+        raise DataError(f"{name}: {what} is empty")
+    # No aspect limit here: see colour_image.
+    if check_header(data, f"{name}: {what}") is None:
+        raise DataError(
+            f"{name}: {what} is not a PNG or JPEG image (its first bytes are neither); "
+            "only those two are decoded, their size read before decoding"
+        )
     try:
-        decoded = cv2.imdecode(data, cv2.IMREAD_COLOR) if data.size else None
-    except cv2.error as error:  # a format whose header is not read (OpenCV's own limit)
+        decoded = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    except cv2.error as error:  # e.g. an allocation OpenCV refuses
         raise DataError(f"{name}: {what} does not decode: {cv2_message(error)}") from error
     except MemoryError as error:
         raise DataError(out_of_memory(f"{name}: {what}", "decoding it")) from error

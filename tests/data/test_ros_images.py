@@ -55,6 +55,19 @@ def test_a_compressed_image_is_read_through_the_shared_header_reader():
         colour_image(compressed(damaged), COMPRESSED_IMAGE, TOPIC)
 
 
+@pytest.mark.parametrize("extension", [".tiff", ".bmp", ".webp"])
+def test_a_compressed_image_that_is_not_png_or_jpeg_is_refused_naming_it(extension):
+    # Formats whose headers are not read are bounded only by OpenCV's 2^30 pixels:
+    # refused as the service refuses them, before decoding.
+    other = cv2.imencode(extension, np.zeros((4, 6, 3), np.uint8))[1].tobytes()
+    assert cv2.imdecode(np.frombuffer(other, np.uint8), cv2.IMREAD_COLOR).shape == (4, 6, 3)
+    with pytest.raises(DataError) as refused:
+        colour_image(compressed(other), COMPRESSED_IMAGE, TOPIC)
+    message = str(refused.value)
+    assert message.startswith(f"{TOPIC} (stamp 1700000000.500000000): compressed image (png)")
+    assert "not a PNG or JPEG" in message and "\n" not in message
+
+
 def test_an_opencv_error_while_decoding_names_the_topic(monkeypatch):
     import relocfw.data.ros_images as ros_images
 
