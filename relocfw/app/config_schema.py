@@ -137,6 +137,7 @@ class ServeConfig:
     body_timeout_s: float = MISSING
     shutdown_timeout_s: float = MISSING
     max_connections: int = MISSING
+    max_connections_per_client: Optional[int] = MISSING  # noqa: UP045
 
 
 @dataclass

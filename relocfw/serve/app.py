@@ -151,10 +151,16 @@ def served_app(service: Service) -> ASGIApp:
     return Guarded(create_app(service), service.queue.counts, settings.shutdown_timeout_s)
 
 
-def over_capacity_app(service: Service) -> ASGIApp:
-    """What a connection above serve.max_connections runs: a JSON 503, counted."""
+def over_capacity_app(service: Service, key: str) -> ASGIApp:
+    """What a connection above serve.KEY (max_connections or max_connections_per_client)
+    runs: a JSON 503 naming the key, counted."""
     settings = service.settings
-    refuse = over_capacity(settings.max_connections, settings.retry_after_s)
+    whose = "the service has" if key == "max_connections" else "this client address has"
+    message = (
+        f"{whose} serve.{key}={getattr(settings, key)} connections open; retry after the "
+        "Retry-After seconds"
+    )
+    refuse = over_capacity(message, settings.retry_after_s)
     return Guarded(refuse, service.queue.counts, settings.shutdown_timeout_s)
 
 

@@ -6,8 +6,8 @@ answers it.
 - A request still open when the shutdown's time is up (serve.shutdown_timeout_s after
   SIGTERM) is cancelled by uvicorn; it is answered 503 and logged in one line instead
   of uvicorn's traceback of the cancellation.
-- `over_capacity` is the JSON 503 a connection above serve.max_connections gets
-  (relocfw.serve.connections).
+- `over_capacity` is the JSON 503 a connection above serve.max_connections or
+  serve.max_connections_per_client gets (relocfw.serve.connections).
 """
 
 from __future__ import annotations
@@ -87,15 +87,10 @@ class Guarded:
                 await stopping(scope, receive, counted)
 
 
-def over_capacity(max_connections: int, retry_after_s: int) -> ASGIApp:
-    """The app a connection above `max_connections` runs: a JSON 503 naming the key."""
-    answer = refusal(
-        SERVICE_UNAVAILABLE,
-        f"the service has serve.max_connections={max_connections} connections open; "
-        "retry after the Retry-After seconds",
-        {"Retry-After": str(retry_after_s)},
-        close=True,
-    )
+def over_capacity(message: str, retry_after_s: int) -> ASGIApp:
+    """The app a connection above a connection cap runs: a JSON 503 with `message`
+    (which names the cap's key), and the connection closed after it."""
+    answer = refusal(SERVICE_UNAVAILABLE, message, {"Retry-After": str(retry_after_s)}, close=True)
 
     async def refuse(scope: Scope, receive: Receive, send: Send) -> None:
         await answer(scope, receive, send)

@@ -4,7 +4,7 @@ SIGTERM or Ctrl-C (SIGINT) stops accepting connections and closes the idle ones;
 uvicorn lets the requests in flight finish and answers them for up to
 serve.shutdown_timeout_s, answers the ones still open then 503 (relocfw.serve.guard),
 the application's lifespan waits for the query running in a worker, and the process
-exits 0. Connections get a header timeout and a cap (relocfw.serve.connections).
+exits 0. Connections get a header timeout and caps (relocfw.serve.connections).
 """
 
 from __future__ import annotations
@@ -23,7 +23,12 @@ from relocfw.core.pipeline import Relocalizer
 from relocfw.serve.answers import describe_model
 from relocfw.serve.app import Service, over_capacity_app, served_app
 from relocfw.serve.auth import BearerToken
-from relocfw.serve.connections import ACCEPT_BACKLOG, guarded_protocol, reserve_open_files
+from relocfw.serve.connections import (
+    ACCEPT_BACKLOG,
+    ConnectionCaps,
+    guarded_protocol,
+    reserve_open_files,
+)
 from relocfw.serve.queue import QueryQueue
 from relocfw.serve.settings import ServeSettings
 from relocfw.serve.workers import Loader, Workers
@@ -112,7 +117,10 @@ def run_service(settings: ServeSettings, relocalizer: Relocalizer, loader: Loade
     queue = QueryQueue(workers, settings.max_pending)
     service = Service(settings, queue, info, token, relocalizer.options.max_aspect)
     protocol = guarded_protocol(
-        settings.header_timeout_s, settings.max_connections, over_capacity_app(service)
+        settings.header_timeout_s,
+        ConnectionCaps(settings.max_connections, settings.max_connections_per_client),
+        over_capacity_app(service, "max_connections"),
+        over_capacity_app(service, "max_connections_per_client"),
     )
     config = uvicorn.Config(
         served_app(service),
@@ -124,6 +132,8 @@ def run_service(settings: ServeSettings, relocalizer: Relocalizer, loader: Loade
         # Then the requests still open are answered 503; the query running in a
         # worker is still finished (the lifespan's end waits for it).
         timeout_graceful_shutdown=settings.shutdown_timeout_s,  # type: ignore[arg-type]
+        # An idle keep-alive connection waits for its next request's head: one timeout.
+        timeout_keep_alive=settings.header_timeout_s,  # type: ignore[arg-type]
     )
     server = uvicorn.Server(config)
     warning = exposure_warning(listener.getsockname()[0], token is not None)

@@ -23,6 +23,9 @@ DEFAULT_BODY_TIMEOUT_S = 10.0
 DEFAULT_SHUTDOWN_TIMEOUT_S = 10.0
 # Far above what max_pending queries need, far below the usual 1024 open files.
 DEFAULT_MAX_CONNECTIONS = 256
+# One address's share: a browser opens 6 connections to a host, a robot a few; 32
+# leaves room for a few processes behind one NAT, and 8 such addresses short of the cap.
+DEFAULT_MAX_CONNECTIONS_PER_CLIENT = 32
 
 
 def whole_number(key: str, value: Any, least: int, most: int | None = None) -> int:
@@ -67,7 +70,10 @@ class ServeSettings:
             taken only once the body is in.
         shutdown_timeout_s: the seconds after SIGTERM (or Ctrl-C) that the requests
             in flight have to finish; the ones left are answered 503.
-        max_connections: the connections open at once; one more is answered 503.
+        max_connections: the connections served at once; one more is answered 503.
+        max_connections_per_client: the connections one client address is served at
+            once; one more from it is answered 503. None: no such cap (behind a proxy,
+            every connection comes from the proxy's address).
     """
 
     model: Path
@@ -83,6 +89,7 @@ class ServeSettings:
     body_timeout_s: float = DEFAULT_BODY_TIMEOUT_S
     shutdown_timeout_s: float = DEFAULT_SHUTDOWN_TIMEOUT_S
     max_connections: int = DEFAULT_MAX_CONNECTIONS
+    max_connections_per_client: int | None = DEFAULT_MAX_CONNECTIONS_PER_CLIENT
 
     def __post_init__(self) -> None:
         if not str(self.host).strip():
@@ -94,12 +101,20 @@ class ServeSettings:
         whole_number("max_pixels", self.max_pixels, 1)
         whole_number("retry_after_s", self.retry_after_s, 0)
         whole_number("max_connections", self.max_connections, 1)
+        if self.max_connections_per_client is not None:
+            whole_number("max_connections_per_client", self.max_connections_per_client, 1)
         for key in ("header_timeout_s", "body_timeout_s", "shutdown_timeout_s"):
             object.__setattr__(self, key, seconds(key, getattr(self, key)))
         if self.max_pending < self.workers:
             raise ConfigError(
                 f"serve.max_pending={self.max_pending} is below serve.workers="
                 f"{self.workers}: some workers could never be given a query"
+            )
+        if self.max_connections < self.max_pending:
+            raise ConfigError(
+                f"serve.max_connections={self.max_connections} is below serve.max_pending="
+                f"{self.max_pending}: the queue could never be filled (a query holds its "
+                "connection until it is answered)"
             )
 
     @classmethod
@@ -124,4 +139,5 @@ class ServeSettings:
             body_timeout_s=serve.body_timeout_s,
             shutdown_timeout_s=serve.shutdown_timeout_s,
             max_connections=serve.max_connections,
+            max_connections_per_client=serve.max_connections_per_client,
         )

@@ -27,11 +27,22 @@ from relocfw.serve.settings import ServeSettings
         ({"header_timeout_s": float("nan")}, r"serve\.header_timeout_s must be a number > 0"),
         ({"shutdown_timeout_s": -1.0}, r"serve\.shutdown_timeout_s must be a number > 0"),
         ({"max_connections": 0}, r"serve\.max_connections must be >= 1"),
+        ({"max_connections_per_client": 0}, r"serve\.max_connections_per_client must be >= 1"),
+        ({"max_connections_per_client": 2.5}, r"serve\.max_connections_per_client must be a whole"),
+        (
+            {"max_connections": 4, "max_pending": 8},
+            r"serve\.max_connections=4 is below serve\.max_pending=8",
+        ),
     ],
 )
 def test_a_bad_serve_value_names_its_key(changes, words):
     with pytest.raises(ConfigError, match=words):
         ServeSettings(model=Path("m.relocfw"), **changes)
+
+
+def test_the_per_client_cap_is_off_with_null():
+    settings = ServeSettings(model=Path("m.relocfw"), max_connections_per_client=None)
+    assert settings.max_connections_per_client is None
 
 
 def test_a_port_in_use_names_host_and_port():

@@ -52,7 +52,12 @@ def server(model, tmp_path_factory):
 @pytest.fixture(scope="module")
 def impatient(model, tmp_path_factory):
     """A service with short body and header timeouts and a small connection cap."""
-    overrides = ["serve.body_timeout_s=1", "serve.header_timeout_s=1", "serve.max_connections=6"]
+    overrides = [
+        "serve.body_timeout_s=1",
+        "serve.header_timeout_s=1",
+        "serve.max_connections=6",
+        "serve.max_pending=4",
+    ]
     with running(serve_command(model, *overrides), tmp_path_factory.mktemp("serve")) as found:
         yield found
 
@@ -150,6 +155,45 @@ def test_connections_over_the_cap_are_refused_503_naming_the_key(impatient):
         time.sleep(2.0)
         assert httpx.get(f"{impatient.url}/v1/health", timeout=5).status_code == 200
     assert post_image(impatient.url).status_code == 200
+
+
+def connection_from(url: str, source: str) -> socket.socket:
+    """A connection to the service from the local address `source` (Linux routes all
+    of 127.0.0.0/8 to the loopback: 127.0.0.2 is a second client on this machine)."""
+    return socket.create_connection(address_of(url), timeout=5, source_address=(source, 0))
+
+
+HEALTH = b"GET /v1/health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n"
+
+
+def test_one_client_address_cannot_hold_every_connection(model, tmp_path):
+    """The review's lock: one client held every connection the service serves. Now
+    one address holds at most serve.max_connections_per_client of them; its next is
+    refused 503 naming the key, while another address is still answered."""
+    overrides = [
+        "serve.max_connections=6",
+        "serve.max_pending=4",
+        "serve.max_connections_per_client=4",
+        "serve.header_timeout_s=30",  # the held connections stay for the whole test
+    ]
+    with (
+        running(serve_command(model, *overrides), tmp_path) as service,
+        # 12 from 127.0.0.1, twice the service's cap: 4 served, the rest refused.
+        open_sockets(service.url, b"", 12),
+    ):
+        with connection_from(service.url, "127.0.0.1") as extra:
+            extra.sendall(HEALTH)
+            head, _, body = read_until_closed(extra, 10.0).partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 503 "), head
+        assert b"serve.max_connections_per_client=4" in body, body
+        assert b"retry-after: 1" in head.lower()
+        other = httpx.HTTPTransport(local_address="127.0.0.2")
+        with httpx.Client(base_url=service.url, transport=other, timeout=10) as client:
+            assert client.get("/v1/health").status_code == 200
+            answered = client.post(
+                "/v1/localize", content=IMAGE, headers={"Content-Type": "image/png"}
+            )
+            assert answered.status_code == 200, answered.text
 
 
 def test_bodies_arriving_at_once_are_bounded_by_the_bytes_received(model, tmp_path):
