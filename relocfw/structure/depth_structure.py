@@ -136,9 +136,28 @@ class DepthScale:
             check_depth_range(np.array([median]), first.depth_path, first.depth_units_per_metre)
         except DataError as error:
             raise DataError(
-                f"{error} (the median of the medians of the {len(self.medians)} depth "
-                "maps read, the first outside named)"
+                f"{error} (the map's median depth: the median of the medians of the "
+                f"{len(self.medians)} depth maps read; the first outside the range named)"
             ) from None
+
+
+def depth_judged(view: MapView, scale: DepthScale) -> tuple[np.ndarray | None, str]:
+    """As `depth_of_view`, with the depth scale judged over the map (`scale`, one per
+    map, `finish`ed after its last frame): a frame whose own median is implausible in a
+    plausible map gives (None, why), said once on stderr."""
+    depth, reason = raw_depth(view)
+    if depth is None:
+        return None, reason
+    return judged_depth(view, depth, scale)
+
+
+def judged_depth(
+    view: MapView, depth: np.ndarray, scale: DepthScale
+) -> tuple[np.ndarray | None, str]:
+    """`depth_judged` of a depth map already read (`raw_depth`)."""
+    if not scale.plausible(view, depth):
+        return None, implausible_frame(view, depth)
+    return in_image_pixels(view, depth), ""
 
 
 def implausible_frame(view: MapView, depth: np.ndarray) -> str:
@@ -205,12 +224,7 @@ def build_from_depth(
     for number in range(len(views)):
         view = checked_view(number, views[number])
         found = on_descriptor_grid(extract_rootsift(view.image, max_features, image_scale))
-        depth, reason = raw_depth(view)
-        if depth is not None and not scale.plausible(view, depth):
-            reason = implausible_frame(view, depth)
-            depth = None
-        elif depth is not None:
-            depth = in_image_pixels(view, depth)
+        depth, reason = depth_judged(view, scale)
         if depth is None:
             lifted = np.full((len(found), 3), np.nan, dtype=np.float32)
         else:

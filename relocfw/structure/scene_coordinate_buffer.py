@@ -10,10 +10,11 @@ running the encoder again. Each cell keeps:
 - its pixel in the ORIGINAL map image (relocfw.structure.scene_coordinate_cells) and
   its map image's index, for the reprojection loss (RGB-only training);
 - its world point where the map image has depth (NaN otherwise): depth registered
-  into the colour camera (relocfw.structure.depth_structure.depth_of_view, the same
-  reading refine=features lifts keypoints with), read at the cell's pixel, lifted
-  with the camera and the map pose. Cells without a depth reading are dropped in
-  depth mode.
+  into the colour camera (relocfw.structure.depth_structure, the same reading and the
+  same map-wide judgement of the depth scale refine=features lifts keypoints with),
+  read at the cell's pixel, lifted with the camera and the map pose. Cells without a
+  depth reading are dropped in depth mode, so a frame whose median depth alone is
+  implausible (a camera facing a wall) gives no cell, with one note naming it.
 
 Per map image the buffer also keeps its camera (fx, fy, cx, cy) and world-to-camera
 rotation and translation, which the reprojection loss needs.
@@ -32,7 +33,7 @@ from relocfw.core.geometry import quaternion_to_matrix
 from relocfw.core.imaging import check_rgb_image
 from relocfw.core.progress import Progress
 from relocfw.core.refinement import MapImage
-from relocfw.structure.depth_structure import depth_of_view
+from relocfw.structure.depth_structure import DepthScale, judged_depth, raw_depth
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
 from relocfw.structure.scene_coordinate_cells import (
@@ -95,24 +96,25 @@ class TrainingBuffer:
         return len(self.features)
 
 
-def registered_depth(view: MapImage) -> np.ndarray:
-    """The view's depth in its image's pixels (metres, NaN where none), or a DataError
-    naming the view and why (a missing or unreadable depth file names the file)."""
-    depth, reason = depth_of_view(
-        MapView(
-            image=view.image,
-            pose=view.pose,
-            camera=view.camera,
-            depth_path=view.depth_path,
-            name=view.name,
-            depth_units_per_metre=view.depth_units_per_metre,
-            depth_camera=view.depth_camera,
-            depth_to_colour=view.depth_to_colour,
-        )
+def registered_depth(view: MapImage, scale: DepthScale) -> np.ndarray | None:
+    """The view's depth in its image's pixels (metres, NaN where none), judged with the
+    map's depth scale (`scale`, as refine=features' depth map is): None for a frame
+    whose own median depth is implausible in a plausible map (one note names it); a
+    DataError naming the view and why its depth cannot be read (naming the file)."""
+    map_view = MapView(
+        image=view.image,
+        pose=view.pose,
+        camera=view.camera,
+        depth_path=view.depth_path,
+        name=view.name,
+        depth_units_per_metre=view.depth_units_per_metre,
+        depth_camera=view.depth_camera,
+        depth_to_colour=view.depth_to_colour,
     )
+    depth, reason = raw_depth(map_view)
     if depth is None:
         raise DataError(f"refine=scene_coordinates (depth): map image {view.name!r}: {reason}")
-    return depth
+    return judged_depth(map_view, depth, scale)[0]
 
 
 def checked_view(view: MapImage) -> None:
@@ -140,7 +142,8 @@ def build_buffer(
 
     Raises:
         DataError: naming the map image whose pixels, pose or camera are unusable, or
-            (use_depth) whose depth file is missing or unreadable, or when no cell of
+            (use_depth) whose depth file is missing or unreadable, or a depth file when
+            the map's depth is implausible in metres (DepthScale), or when no cell of
             any map image has a depth reading.
     """
     for view in views:
@@ -150,8 +153,12 @@ def build_buffer(
     per_pass = max(1, -(-settings.cells // (len(views) * settings.passes)))
     kept: dict[str, list] = {"features": [], "points": [], "pixels": [], "views": []}
     progress = Progress(len(views), "scene coordinates: encoder passes", quiet=quiet)
+    scale = DepthScale(len(views))
     for number, view in enumerate(views):
-        depth = registered_depth(view) if use_depth else None
+        depth = registered_depth(view, scale) if use_depth else None
+        if use_depth and depth is None:
+            progress.advance()  # a close-range frame: no cell of it has a target
+            continue
         for repeat in range(settings.passes):
             jitter = (
                 PLAIN
@@ -177,6 +184,8 @@ def build_buffer(
             kept["views"].append(np.full(len(chosen), number, dtype=np.int64))
         progress.advance()
     progress.close()
+    if use_depth:
+        scale.finish()
     if sum(len(v) for v in kept["views"]) == 0:
         raise DataError(
             f"refine=scene_coordinates found no depth reading at any cell of the "

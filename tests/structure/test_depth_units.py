@@ -1,6 +1,7 @@
 """The depth scale is judged over the map, not per frame: one close-range frame (a
 camera facing a wall) loses its depth with one note and the build goes on, while a
-map whose depth is all at a wrong scale is still refused naming a file."""
+map whose depth is all at a wrong scale is still refused naming a file; for
+refine=features' depth map and for scene-coordinate training with depth alike."""
 
 from __future__ import annotations
 
@@ -9,10 +10,13 @@ import dataclasses
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from relocfw.core.errors import DataError
 from relocfw.structure.depth_structure import build_from_depth, depth_of_view
 from relocfw.structure.lifting import lift_keypoints
+from relocfw.structure.scene_coordinate_buffer import BufferSettings, build_buffer
+from tests.structure.scene_coordinate_room import room_views
 
 
 def scaled_depth(view, factor: float, path):
@@ -60,10 +64,34 @@ def test_normal_depth_builds_the_same_map_as_before(synthetic_scene):
         depth, reason = depth_of_view(view)
         assert reason == ""
         expected = lift_keypoints(features.keypoints, depth, view.camera, view.pose)
-        assert np.array_equal(points, expected, equal_nan=True)
+        assert points.dtype == np.float32  # the map keeps them as float32
+        assert np.array_equal(points, expected.astype(np.float32), equal_nan=True)
     found = [
         (int(np.isfinite(p).all(axis=1).sum()), float(np.nansum(p, dtype=np.float64)))
         for p in built.points
     ]
     assert [count for count, _ in found] == [count for count, _ in BEFORE]
     assert [total for _, total in found] == pytest.approx([total for _, total in BEFORE], rel=1e-9)
+
+
+def no_encoder(pixels: torch.Tensor) -> torch.Tensor:
+    """Four zero channels per 8 x 8 cell: the buffer's cells without a network."""
+    return torch.zeros(1, 4, pixels.shape[2] // 8, pixels.shape[3] // 8)
+
+
+def test_scene_coordinate_training_judges_the_depth_scale_over_the_map(tmp_path, capsys):
+    _, views = room_views(tmp_path)
+    views[2] = scaled_depth(views[2], 0.01, tmp_path / "close.depth.png")
+    settings = BufferSettings(
+        image_size=120, passes=1, cells=2000, scale_jitter=0.0, brightness_jitter=0.0, seed=0
+    )
+    buffer = build_buffer(views, no_encoder, settings, use_depth=True)
+    trained_on = set(buffer.views.tolist())
+    assert trained_on == set(range(len(views))) - {2}  # its cells have no target
+    assert torch.isfinite(buffer.points).all()
+    notes = [line for line in capsys.readouterr().err.splitlines() if views[2].name in line]
+    assert len(notes) == 1 and str(tmp_path / "close.depth.png") in notes[0], notes
+    # The whole map at a wrong scale is still refused, naming a depth file.
+    wrong = [dataclasses.replace(view, depth_units_per_metre=1.0) for view in views]
+    with pytest.raises(DataError, match=r"median depth 3\.\d+e\+03 m .*millimetres read as metres"):
+        build_buffer(wrong, no_encoder, settings, use_depth=True)
