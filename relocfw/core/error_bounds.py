@@ -50,9 +50,10 @@ SIGNALS = ("refiner confidence", "spread", "none")  # what ranks trust; stored a
 
 # The most bins a stored state may hold: a forged count must not allocate without end.
 MOST_BINS = 1000
-# The coverages a bound may be calibrated for or stored with. Below one half a "bound"
-# is exceeded by most answers, and a coverage near 0 asks for the 0th smallest error;
-# above 0.999 each bin needs over 999 validation answers for a finite bound.
+# The coverages a bound may be calibrated for (a stored one loads anywhere in (0, 1),
+# as older relocfw calibrated there). Below one half a "bound" is exceeded by most
+# answers, and a coverage near 0 asks for the 0th smallest error; above 0.999 each
+# bin needs over 999 validation answers for a finite bound.
 LEAST_COVERAGE = 0.5
 MOST_COVERAGE = 0.999
 # (n + 1) * coverage is a rational number that binary floats round: 10 * 0.9 may land
@@ -318,7 +319,11 @@ class ErrorBounds:
         if not isinstance(state, Mapping):
             raise DataError(f"{label}: bounds state must be a mapping of tensors")
         coverage = float(_scalar(state, "bounds.coverage", torch.float64, label))
-        coverage = checked_coverage(coverage, f"{label}: bounds.coverage", DataError)
+        # Any probability loads (an older relocfw calibrated anywhere in (0, 1)); the
+        # sane range is calibration's to keep, and every finite bound is held to the
+        # answers behind it below, whatever the coverage.
+        if not 0 < coverage < 1:
+            raise DataError(f"{label}: bounds.coverage must be in (0, 1), got {coverage}")
         code = int(_scalar(state, "bounds.signal", torch.int64, label))
         if not 0 <= code < len(SIGNALS):
             raise DataError(

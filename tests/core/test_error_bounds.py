@@ -361,10 +361,23 @@ def test_every_calibrated_bound_passes_the_rank_check():
 
 
 @pytest.mark.parametrize("coverage", [1e-12, 0.2, 0.9999999])
-def test_a_coverage_outside_the_sane_range_is_refused(coverage):
+def test_a_coverage_outside_the_sane_range_is_refused_by_calibration(coverage):
     with pytest.raises(ConfigError, match="calibrate.coverage"):
         calibrate(np.ones(30), np.zeros(30), np.zeros(30, dtype=bool), coverage=coverage)
+
+
+@pytest.mark.parametrize("coverage", [0.0, 1.0, 1.5, -0.1])
+def test_a_stored_coverage_outside_0_1_is_refused(coverage):
     state = make_bounds().state()
     state["bounds.coverage"] = torch.tensor(coverage, dtype=torch.float64)
     with pytest.raises(DataError, match=r"^model\.pt: bounds[.]coverage must be"):
         ErrorBounds.from_state(state, "model.pt")
+
+
+def test_a_file_calibrated_at_a_coverage_calibration_now_refuses_still_loads():
+    # An older relocfw calibrated at any coverage in (0, 1): such a file loads, and
+    # its finite bounds are still held to the answers behind them.
+    honest = ErrorBounds.from_state(one_answer_bounds(math.inf, coverage=0.9995), "model.pt")
+    assert honest.coverage == 0.9995
+    with pytest.raises(DataError, match=r"needs at least 1999"):
+        ErrorBounds.from_state(one_answer_bounds(0.001, coverage=0.9995), "model.pt")
