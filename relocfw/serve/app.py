@@ -277,7 +277,8 @@ def create_app(service: Service) -> FastAPI:
         try:
             body = await read_body_in_time(request, service.settings, bodies)
         except BodyBudgetError as error:
-            return refusal(503, str(error), retry)
+            # The body was not read to its end: the connection cannot carry another.
+            return refusal(503, str(error), retry, close=True)
         except ClientLeftError as left:
             LOG.warning("relocfw serve: a client left before its body was in (%s)", left)
             return Response(status_code=CLIENT_LEFT)

@@ -132,3 +132,37 @@ def test_a_stop_finishes_the_query_in_flight_then_exits_0(model, tmp_path, stop)
         assert server.process.wait(timeout=60) == 0
     log = server.log.read_text()
     assert "stopped" in log and "interrupted" not in log
+
+
+def test_a_request_still_open_when_the_stop_times_out_is_answered_503(model, tmp_path):
+    """serve.shutdown_timeout_s after a stop, a request still open (its query waits
+    at the gate) is answered a JSON 503 and logged in one line; the query running in
+    the worker is still finished, and the process exits 0."""
+    gate = tmp_path / "gate"
+    gate.mkdir()
+    request = (
+        b"POST /v1/localize HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: image/png\r\n"
+        + f"Content-Length: {len(IMAGE)}\r\n\r\n".encode()
+        + IMAGE
+    )
+    command = gated_command(model, gate, "serve.shutdown_timeout_s=1")
+    with running(command, tmp_path) as server:
+        address = urlparse(server.url)
+        with socket.create_connection((address.hostname, address.port), 10) as connection:
+            connection.sendall(request)
+            wait_for(lambda: started(gate) == 1, what="the query to run")
+            server.process.send_signal(signal.SIGTERM)
+            connection.settimeout(30)
+            received = b""
+            while chunk := connection.recv(65536):
+                received += chunk
+        (gate / "open").touch()  # the worker's query ends: the process can
+        assert server.process.wait(timeout=60) == 0
+    head, _, body = received.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 503 "), received
+    assert body == b'{"error":"the service is stopping"}'
+    log = server.log.read_text()
+    still_open = [line for line in log.splitlines() if "was still open" in line]
+    assert len(still_open) == 1, log[-3000:]
+    assert "serve.shutdown_timeout_s=1 s after the stop: answered 503" in still_open[0]
+    assert "Traceback" not in log, log[-3000:]
