@@ -178,28 +178,41 @@ def pair_matches(
             higher[min(i, j)].add(max(i, j))
     found = []
     for i, others in enumerate(higher):
-        if progress is not None:
-            progress.advance()
         order = sorted(others)
-        if not order:
+        if order:
+            found.extend(image_pair_matches(i, order, features, poses, cameras, settings))
+        if progress is not None:
+            progress.advance()  # once image i's pairs are matched
+    return found
+
+
+def image_pair_matches(
+    i: int,
+    order: Sequence[int],
+    features: Sequence[LocalFeatures],
+    poses: Sequence[Pose],
+    cameras: Sequence[PinholeCamera],
+    settings: TrackSettings,
+) -> list[tuple[int, int, np.ndarray]]:
+    """`pair_matches` of image `i` with its higher partners `order` (ascending)."""
+    found = []
+    for slot, matches in match_against_views(
+        features[i], [features[j] for j in order], settings.ratio
+    ):
+        j = order[slot]
+        if len(matches) == 0:
             continue
-        for slot, matches in match_against_views(
-            features[i], [features[j] for j in order], settings.ratio
-        ):
-            j = order[slot]
-            if len(matches) == 0:
-                continue
-            distance = epipolar_distances(
-                features[i].keypoints[matches[:, 0]],
-                features[j].keypoints[matches[:, 1]],
-                cameras[i],
-                poses[i],
-                cameras[j],
-                poses[j],
-            )
-            kept = matches[distance <= settings.epipolar_px]
-            if len(kept):
-                found.append((i, j, kept))
+        distance = epipolar_distances(
+            features[i].keypoints[matches[:, 0]],
+            features[j].keypoints[matches[:, 1]],
+            cameras[i],
+            poses[i],
+            cameras[j],
+            poses[j],
+        )
+        kept = matches[distance <= settings.epipolar_px]
+        if len(kept):
+            found.append((i, j, kept))
     return found
 
 
