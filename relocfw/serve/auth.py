@@ -42,7 +42,9 @@ class BearerToken:
         if os.name == "posix" and mode & SHARED_BITS:
             raise ConfigError(
                 f"serve.token_file={path}: other users may read it (mode {mode:o}); "
-                f"make it the service user's alone: chmod 600 {path}"
+                f"make it the service user's alone: chmod 600 {path} (a mounted secret: "
+                "a Kubernetes Secret's `defaultMode: 0400`, a Docker secret's `mode: 0400` "
+                "with the service's `uid`)"
             )
         if len(token) < MIN_TOKEN_LENGTH or any(c.isspace() for c in token):
             raise ConfigError(

@@ -53,20 +53,31 @@ def reserve_open_files(max_connections: int) -> None:
     worker_rlimit_nofile does.
 
     Raises:
-        ConfigError: naming serve.max_connections when even the hard limit is too low.
+        ConfigError: naming serve.max_connections when even the hard limit is too low,
+            or the soft limit cannot be raised.
     """
     needed = open_files_needed(max_connections)
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if soft == resource.RLIM_INFINITY or soft >= needed:
         return
+    above = (
+        f"serve.max_connections={max_connections} needs up to {needed} open files, above "
+        "this process's limit of"
+    )
     if hard != resource.RLIM_INFINITY and hard < needed:
-        most = max(0, hard - (needed - max_connections))
+        most = hard - (needed - max_connections)
+        # Where the service's other files alone pass the limit, no cap would help.
+        lower = f"lower serve.max_connections to {most} or less, or " if most >= 1 else ""
         raise ConfigError(
-            f"serve.max_connections={max_connections} needs up to {needed} open files, "
-            f"above this process's limit of {hard} (ulimit -n): lower serve.max_connections "
-            f"to {most} or less, or raise the limit (ulimit -n {needed})"
+            f"{above} {hard} (ulimit -n): {lower}raise the limit (ulimit -n {needed})"
         )
-    resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+    try:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+    except (ValueError, OSError) as error:
+        raise ConfigError(
+            f"{above} {soft} (ulimit -n), which could not be raised ({error}): raise the "
+            f"limit (ulimit -n {needed}) or lower serve.max_connections"
+        ) from None
 
 
 @dataclass(frozen=True)

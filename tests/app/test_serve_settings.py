@@ -118,3 +118,30 @@ def test_max_connections_above_the_open_file_limit_ends_in_one_line(tmp_path):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1, done.stderr[-3000:]
     assert lines[0].startswith("error: serve.max_connections=1000 ") and "ulimit -n" in lines[0]
+
+
+def test_an_open_file_limit_below_the_service_itself_says_raise_it(monkeypatch):
+    """A hard limit below what the service needs besides its connections: lowering
+    serve.max_connections cannot help, and the message does not suggest it."""
+    from relocfw.serve import connections
+
+    monkeypatch.setattr(connections.resource, "getrlimit", lambda _: (100, 200))
+    with pytest.raises(ConfigError) as refused:
+        connections.reserve_open_files(256)
+    message = str(refused.value)
+    assert message.startswith("serve.max_connections=256 ") and "lower" not in message
+    assert f"ulimit -n {connections.open_files_needed(256)}" in message
+
+
+def test_an_open_file_limit_that_cannot_be_raised_is_one_config_error(monkeypatch):
+    """setrlimit can refuse even below the hard limit (a container's seccomp, macOS's
+    OPEN_MAX): the service stops in one line naming the key, not a traceback."""
+    from relocfw.serve import connections
+
+    def refuse(*_: object) -> None:
+        raise ValueError("not allowed to raise maximum limit")
+
+    monkeypatch.setattr(connections.resource, "getrlimit", lambda _: (100, 100_000))
+    monkeypatch.setattr(connections.resource, "setrlimit", refuse)
+    with pytest.raises(ConfigError, match=r"^serve\.max_connections=256 .*ulimit -n"):
+        connections.reserve_open_files(256)
