@@ -15,7 +15,7 @@ The parts, one per module:
     answers    a Localization and the model as JSON
     app        the FastAPI application over all of them
     guard      around the application: refusals counted, requests cut off by a stop
-    connections  below it: header timeout, connection cap, open files
+    connections  below it: header timeout, connection caps, open files
     service    loading, serving, draining on SIGTERM and Ctrl-C
 
 FastAPI, Starlette and uvicorn are imported by `app`, `guard`, `connections` and

@@ -64,10 +64,11 @@ class ServeSettings:
         token_file: a file holding the bearer token callers must send; None: no token.
         retry_after_s: the Retry-After a 503 carries.
         header_timeout_s: the seconds a connection has to send a request's headers
-            (closed after them).
+            after it opened or after its last answer (closed after them): also how
+            long an idle keep-alive connection is kept.
         body_timeout_s: the seconds a request has to send its whole body once its
-            headers are in (answered 408 and closed after them); its queue place is
-            taken only once the body is in.
+            headers are in, a deadline for the whole body (answered 408 and closed
+            after them); its queue place is taken only once the body is in.
         shutdown_timeout_s: the seconds after SIGTERM (or Ctrl-C) that the requests
             in flight have to finish; the ones left are answered 503.
         max_connections: the connections served at once; one more is answered 503.
