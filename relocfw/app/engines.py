@@ -152,7 +152,7 @@ def on_engine(
         return relocalizer
     cache_dir = cfg.get("cache_dir")
     home = graph_home(owner, Path(str(cache_dir)) if cache_dir else None)
-    adopt_shipped_graphs(owner, home)
+    home = adopt_shipped_graphs(owner, home)
     try:
         if engine == "ncnn":
             backbone = ncnn_engine(relocalizer.backbone, home, options, say=warn)

@@ -221,18 +221,33 @@ def graph_home(owner: Path, cache_dir: Path | None) -> Path:
     return home / owner.name
 
 
-def adopt_shipped_graphs(owner: Path, home: Path) -> None:
-    """Copy into `home` the graphs kept beside `owner` that it lacks: the static int8
-    graphs task=relocalize keeps beside a model file (a robot has no map images to
-    remake them). Each is checked when opened, as every cached graph is."""
+def adopt_shipped_graphs(owner: Path, home: Path) -> Path:
+    """Copy into `home` the graphs kept beside `owner` that it lacks or holds other
+    bytes of: the static int8 graphs task=relocalize keeps beside a model file (a robot
+    has no map images to remake them). Each is checked when opened, as every cached
+    graph is.
+
+    Returns:
+        Where the graphs are read and written: `home`, or `owner` itself where a graph
+        kept beside it could not be copied into `home` (an unwritable cache), so the
+        graphs beside the model file are read where they are.
+    """
     if Path(owner) == Path(home):
-        return
+        return home
     for kind in KINDS.values():
         for mode in INT8_MODES:
             shipped, cached_path = graph_path(owner, kind, mode), graph_path(home, kind, mode)
-            if shipped.is_file() and not cached_path.exists():
-                with contextlib.suppress(OSError):
-                    write_graph(shipped.read_bytes(), cached_path)
+            if not shipped.is_file():
+                continue
+            data = shipped.read_bytes()
+            # A cached copy of other bytes (damaged, or a stale file) is replaced.
+            if cached_path.is_file() and cached_path.read_bytes() == data:
+                continue
+            try:
+                write_graph(data, cached_path)
+            except OSError:
+                return owner
+    return home
 
 
 def onnx_engine(

@@ -38,7 +38,9 @@ from relocfw.model.onnx_engine import (
     STATIC_MODES,
     EngineOptions,
     EngineUnavailableError,
+    adopt_shipped_graphs,
     cgroup_cpu_quota,
+    graph_home,
     graph_path,
     onnx_engine,
 )
@@ -883,3 +885,44 @@ def test_graphs_shipped_beside_a_model_file_are_used_from_the_cache(
     engine = on_engine(cfg, load_model(model), model, torch.device("cpu"))  # none at hand
     assert engine.backbone.int8 == "static"
     assert sorted(p.name for p in model.parent.iterdir()) == shipped
+
+
+def test_graphs_shipped_beside_a_model_file_are_read_there_where_the_cache_is_unwritable(
+    built, images, tmp_path, monkeypatch
+):
+    """A cache that cannot be written (here: its folder's parent is a file) leaves the
+    static int8 graphs kept beside the model file where they are, read from there with
+    no calibration, instead of a refusal asking for map images."""
+    monkeypatch.setattr(cpu_flags, "int8_saturation_reason", lambda: None)
+    net = built("head")
+    model = saved_model(net, images, tmp_path / "robot" / "model.relocfw")
+    options = EngineOptions(threads=1, int8="static")
+    onnx_engine(net.backbone, model, options, images.map, say=pytest.fail)  # beside it
+    (tmp_path / "blocker").write_text("a file where the cache's parent folder would be")
+    cfg = OmegaConf.merge(
+        engine_config(int8="static"), {"cache_dir": str(tmp_path / "blocker" / "cache")}
+    )
+    engine = on_engine(cfg, load_model(model), model, torch.device("cpu"))  # none at hand
+    assert engine.backbone.int8 == "static"
+
+
+def test_a_cached_copy_of_other_bytes_is_replaced_by_the_graph_shipped_beside_the_model(
+    built, images, tmp_path, monkeypatch
+):
+    monkeypatch.setattr(cpu_flags, "int8_saturation_reason", lambda: None)
+    net = built("head")
+    model = saved_model(net, images, tmp_path / "robot" / "model.relocfw")
+    options = EngineOptions(threads=1, int8="static")
+    onnx_engine(net.backbone, model, options, images.map, say=pytest.fail)  # beside it
+    cache = tmp_path / "cache"
+    home = graph_home(model, cache)
+    shipped = [path for path in model.parent.iterdir() if path != model]
+    assert shipped
+    for path in shipped:  # damaged copies in the cache, of the same names
+        (home.parent / path.name).write_bytes(b"not a graph")
+    assert adopt_shipped_graphs(model, home) == home
+    for path in shipped:
+        assert (home.parent / path.name).read_bytes() == path.read_bytes()
+    cfg = OmegaConf.merge(engine_config(int8="static"), {"cache_dir": str(cache)})
+    engine = on_engine(cfg, load_model(model), model, torch.device("cpu"))
+    assert engine.backbone.int8 == "static"
