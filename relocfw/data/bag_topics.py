@@ -79,18 +79,23 @@ def topic_stats(path: str | Path) -> list[TopicStats]:
 
 def topics_table(path: str | Path, stats: Iterable[TopicStats]) -> str:
     """The bag's topics as an aligned table with one heading line (what task=topics
-    prints): topic, type, count, rate (Hz), first and last bag time (s)."""
+    prints): topic, type, count, rate (Hz), and first and last message in seconds from
+    the bag's first message, as dataset.train_time and dataset.test_time count them;
+    the heading gives that first message's bag time."""
     stats = list(stats)
     messages = sum(s.count for s in stats)
     version = 1 if is_ros1(Path(path).expanduser()) else 2
+    start_ns = min((s.first_ns for s in stats if s.first_ns is not None), default=None)
+    start = "" if start_ns is None else f", first message at bag time {seconds_text(start_ns)} s"
     heading = (
-        f"{path}: ROS {version} bag, {len(stats)} topics, {messages} messages (stamps: bag time, s)"
+        f"{path}: ROS {version} bag, {len(stats)} topics, {messages} messages{start} "
+        "(first_s, last_s: seconds from it, as dataset.train_time / test_time count)"
     )
-    rows = [("topic", "type", "count", "rate_hz", "first", "last")]
+    rows = [("topic", "type", "count", "rate_hz", "first_s", "last_s")]
     for s in stats:
         rate = "-" if s.rate_hz is None else f"{s.rate_hz:.2f}"
-        first = "-" if s.first_ns is None else seconds_text(s.first_ns)
-        last = "-" if s.last_ns is None else seconds_text(s.last_ns)
+        first = "-" if s.first_ns is None else f"{(s.first_ns - start_ns) / 1e9:.3f}"
+        last = "-" if s.last_ns is None else f"{(s.last_ns - start_ns) / 1e9:.3f}"
         rows.append((s.name, s.msgtype, str(s.count), rate, first, last))
     widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
     lines = ["  ".join(cell.ljust(w) for cell, w in zip(row, widths, strict=True)) for row in rows]
