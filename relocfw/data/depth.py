@@ -90,6 +90,14 @@ def read_depth(
     return depth
 
 
+def median_depth(depth: np.ndarray) -> float | None:
+    """The median of a depth map's valid readings (finite, > 0) in metres; None
+    without any."""
+    values = np.asarray(depth, dtype=np.float64)
+    valid = values[np.isfinite(values) & (values > 0)]
+    return float(np.median(valid)) if valid.size else None
+
+
 def check_depth_range(
     depth: np.ndarray, path: str | Path, units_per_metre: float = MILLIMETRES_PER_METRE
 ) -> None:
@@ -108,11 +116,9 @@ def check_depth_range(
     Raises:
         DataError: naming the file, the median depth and the scale.
     """
-    values = np.asarray(depth, dtype=np.float64)
-    valid = values[np.isfinite(values) & (values > 0)]
-    if valid.size == 0:
+    median = median_depth(depth)
+    if median is None:
         return  # no reading at all: the builders report that view as skipped
-    median = float(np.median(valid))
     low, high = PLAUSIBLE_MEDIAN_DEPTH_M
     if low <= median <= high:
         return

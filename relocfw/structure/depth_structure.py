@@ -11,7 +11,12 @@ import numpy as np
 from relocfw.core.errors import DataError
 from relocfw.core.options import integer_at_least
 from relocfw.core.progress import Progress
-from relocfw.data.depth import PLAUSIBLE_MEDIAN_DEPTH_M, check_depth_range, read_depth
+from relocfw.data.depth import (
+    PLAUSIBLE_MEDIAN_DEPTH_M,
+    check_depth_range,
+    median_depth,
+    read_depth,
+)
 from relocfw.structure.features import checked_image_scale, extract_rootsift
 from relocfw.structure.lifting import lift_keypoints
 from relocfw.structure.map_view import MapView
@@ -80,13 +85,6 @@ def in_image_pixels(view: MapView, depth: np.ndarray) -> np.ndarray:
     return depth
 
 
-def median_depth(depth: np.ndarray) -> float | None:
-    """The median of a depth map's valid readings in metres; None without any."""
-    values = np.asarray(depth, dtype=np.float64)
-    valid = values[np.isfinite(values) & (values > 0)]
-    return float(np.median(valid)) if valid.size else None
-
-
 class DepthScale:
     """The depth scale judged over the map, not per frame.
 
@@ -104,13 +102,13 @@ class DepthScale:
         self.low: list[MapView] = []  # frames below the range, in order
         self.high: list[MapView] = []
 
-    def plausible(self, view: MapView, depth: np.ndarray) -> bool:
-        """Record the frame's median; whether its depth is plausible in metres.
+    def plausible(self, view: MapView, median: float | None) -> bool:
+        """Record the frame's median depth (`median_depth`); whether it is plausible
+        in metres.
 
         Raises:
             DataError: once the map's median depth is settled outside the range.
         """
-        median = median_depth(depth)
         if median is None:
             return True  # no reading at all: the build reports that view as skipped
         self.medians.append(median)
@@ -155,17 +153,18 @@ def judged_depth(
     view: MapView, depth: np.ndarray, scale: DepthScale
 ) -> tuple[np.ndarray | None, str]:
     """`depth_judged` of a depth map already read (`raw_depth`)."""
-    if not scale.plausible(view, depth):
-        return None, implausible_frame(view, depth)
+    median = median_depth(depth)
+    if not scale.plausible(view, median):
+        return None, implausible_frame(view, median)
     return in_image_pixels(view, depth), ""
 
 
-def implausible_frame(view: MapView, depth: np.ndarray) -> str:
+def implausible_frame(view: MapView, median: float) -> str:
     """Why a frame of a plausible map loses its depth, said once on stderr (printed
     even when quiet, as a cache note is: it changes the map)."""
     low, high = PLAUSIBLE_MEDIAN_DEPTH_M
     reason = (
-        f"median depth {median_depth(depth):.3g} m in {view.depth_path}, outside "
+        f"median depth {median:.3g} m in {view.depth_path}, outside "
         f"{low:g}-{high:g} m while the map's is within: its depth is left out"
     )
     print(f"note: map image {view.name!r}: {reason}", file=sys.stderr)
