@@ -11,7 +11,7 @@ map then holds repeated views. (Cycled files are read through the OS's file cach
 
 build_from_depth is one loop over the views. Its parts are timed by wrapping the
 module-level functions it calls (extract_rootsift: features; on_descriptor_grid:
-quantisation; depth_of_view: depth read; lift_keypoints: lifting) and the lazy view
+quantisation; depth_judged: depth read; lift_keypoints: lifting) and the lazy view
 sequence it reads (image read: JPEG decode), so the numbers are the real builder's;
 "assembly" is the rest of the build (the StructureMap's checks and copies, the loop).
 Memory is the process's peak resident set (ru_maxrss) before the build, after it and
@@ -88,7 +88,7 @@ ALL_SEQUENCES = tuple(range(1, 8))
 WRAPPED_PARTS = {
     "extract_rootsift": "features",
     "on_descriptor_grid": "quantisation",
-    "depth_of_view": "depth_read",
+    "depth_judged": "depth_read",
     "lift_keypoints": "lifting",
 }
 BUILD_PARTS = ("image_read", *WRAPPED_PARTS.values(), "assembly")
@@ -221,7 +221,7 @@ def build_and_save(
     cpu_build = time.process_time() - cpu_start
     if calls["features"] != len(frames) or calls["depth_read"] != len(frames):
         raise SystemExit(
-            "build_from_depth no longer calls extract_rootsift and depth_of_view once per "
+            "build_from_depth no longer calls extract_rootsift and depth_judged once per "
             f"view ({calls}); update WRAPPED_PARTS in this benchmark"
         )
     rss_built = peak_rss_mib()

@@ -96,6 +96,7 @@ from relocfw.data.sevenscenes import scene_cameras
 from relocfw.plugins.faiss_index import KINDS, PRECISIONS, FaissIndex, import_faiss
 from relocfw.structure import StructureMap, localize_against
 from relocfw.structure.compact_map import CompactMap
+from relocfw.structure.compact_writer import lock_file
 from relocfw.structure.descriptor_codes import codec_of_bytes
 from relocfw.structure.refiner_inputs import keyframes_by_descriptor
 
@@ -301,6 +302,16 @@ def build_stage(frames: list, cameras, args, report: dict) -> StructureMap:
     return structure
 
 
+def remove_compact_map(folder: Path) -> None:
+    """Remove a compact map: its folder is a link to the version a writer published
+    (relocfw.structure.compact_writer), so both go, with the writers' lock file."""
+    version = folder.resolve()
+    if folder.is_symlink():
+        folder.unlink()
+    shutil.rmtree(version)
+    lock_file(folder).unlink(missing_ok=True)
+
+
 def code_stage(structure, rows_of, codecs, folder, queries, images, keyframes, camera, args):
     """The built map in the compact layout under each code, queried with `keyframes`
     (the accuracy cost of each code against the in-memory map)."""
@@ -322,7 +333,7 @@ def code_stage(structure, rows_of, codecs, folder, queries, images, keyframes, c
                 **answered,
             }
         )
-        shutil.rmtree(target)
+        remove_compact_map(target)
         print(f"code {code_bytes} B: {disk / len(structure) / 1000:.1f} KB/image", flush=True)
     return results
 
@@ -627,7 +638,7 @@ def main() -> None:
             report["done_when"] = done_when(report["rows"])
             report["peak_rss_mib"] = peak_rss_mib()
             write_json(report, args.out)
-            shutil.rmtree(folder / f"scale-{size}")
+            remove_compact_map(folder / f"scale-{size}")
             totals = row["query"]["median_total_ms"][row["query_retrieval"]]
             print(f"map of {size}: {totals['warm']:.0f} ms a query (warm)", flush=True)
     report["complete"] = True
