@@ -33,6 +33,15 @@ Each frame also gets its cameras and, where the folder has it, its depth map:
                 (docs/results/structure.md, "Which sensor the poses describe"), so it
                 is not the default. Registered depth has no depth-to-colour transform:
                 there the poses are always the colour camera's.
+    pgt         a pseudo-ground-truth file (relocfw.data.pseudo_ground_truth: Brachmann
+                et al.'s SfM or DSLAM poses of the colour camera) in place of the
+                `.pose.txt` files: each frame's pose and colour camera (the line's
+                focal length, principal point at the image centre) come from its line,
+                matched by sequence and frame number; frames without a line are named
+                in one note and left out. The depth camera and the depth-to-colour
+                transform stay the Kinect's, so depth is registered into the colour
+                image as without the file, now at the file's colour pose. `poses_of`,
+                `colour_focal` and `intrinsics_for=colour` do not apply (refused).
 """
 
 from __future__ import annotations
@@ -55,6 +64,7 @@ from relocfw.data.depth import depth_path_of
 from relocfw.data.frames import Frame
 from relocfw.data.intrinsics import INTRINSICS_FILE, note_default_camera, read_camera_for_images
 from relocfw.data.on_error import OnError
+from relocfw.data.pseudo_ground_truth import PseudoGroundTruth, read_pseudo_ground_truth
 
 SPLIT_FILES = {"train": "TrainSplit.txt", "test": "TestSplit.txt"}
 SEQUENCE_LINE = re.compile(r"^sequence(\d+)$", re.IGNORECASE)
@@ -68,6 +78,8 @@ REGISTERED_MARKER = "depth-registered.txt"
 # colour camera's 525 / 640 is probably a colour calibration (the depth
 # sensor's is 585 / 640, 10% more).
 COLOUR_LOOKALIKE_SHARE = 0.03
+# Frames without a line in a pseudo-ground-truth file named in its note, the rest counted.
+NAMED_MISSING = 20
 
 # The Kinect's depth-to-colour transform, x_colour = R x_depth + t (metres): the
 # calibration that DSAC* and ACE use on 7-Scenes (vislearn/dsacstar and nianticlabs/ace,
@@ -280,6 +292,32 @@ def scene_cameras(
     return SceneCameras(from_file, SEVENSCENES_DEPTH.scaled_to(*size), SEVENSCENES_DEPTH_TO_COLOUR)
 
 
+def frame_number(stem: str) -> int | None:
+    """The number of a frame named `frame-000123`; None for another name."""
+    digits = stem.rsplit("-", 1)[-1]
+    return int(digits) if digits.isascii() and digits.isdigit() else None
+
+
+def centred_camera(focal: float, width: int, height: int) -> PinholeCamera:
+    """The colour camera a pseudo-ground-truth line describes: focal length `focal`
+    for images of this size, the principal point at the image centre (width / 2,
+    height / 2, as 7-Scenes' nominal cameras have it)."""
+    return PinholeCamera(focal, focal, width / 2, height / 2, width, height)
+
+
+def note_missing_lines(path: Path, missing: Sequence[str], kept: int) -> None:
+    """One note on stderr naming the frames a pseudo-ground-truth file has no line for
+    (left out: a frame without a reference pose can be neither mapped nor scored)."""
+    named = ", ".join(missing[:NAMED_MISSING])
+    more = f" and {len(missing) - NAMED_MISSING} more" if len(missing) > NAMED_MISSING else ""
+    print(
+        f"note: {path} (dataset.pgt) has no line for {len(missing)} frame(s) of the split, "
+        "left out "
+        f"({kept} kept): {named}{more}",
+        file=sys.stderr,
+    )
+
+
 def existing_depth(image: Path) -> Path | None:
     """The depth map beside a colour image, or None when there is none."""
     path = depth_path_of(image)
@@ -310,6 +348,7 @@ def load_sevenscenes(
     intrinsics_for: str = "depth",
     poses_of: str = "colour",
     colour_focal: float | None = None,
+    reference: PseudoGroundTruth | None = None,
 ) -> list[Frame]:
     """Frames of one split, in sequence then frame order, with cameras and depth path.
 
@@ -327,6 +366,10 @@ def load_sevenscenes(
             depth-to-colour transform (see the module).
         colour_focal: the colour camera's focal length (pixels at 640 x 480) where no
             file describes it; None: SEVENSCENES_COLOUR's (scene_cameras).
+        reference: a pseudo-ground-truth file (read_pseudo_ground_truth), read
+            instead of the `.pose.txt` files: each frame's pose and colour camera come
+            from its line; frames without one are named in one note on stderr and
+            left out (see the module).
 
     Raises:
         DataError: a missing split file, sequence folder or image set, a bad pose file
@@ -346,24 +389,44 @@ def load_sevenscenes(
         source = str(folder / SPLIT_FILES[split])
         sequences = read_split(folder / SPLIT_FILES[split])
     posed: list[tuple[str, Path, Pose]] = []
+    focals: dict[str, float] = {}  # a frame's colour focal length from `reference`
+    missing: list[str] = []  # frames without a line in `reference`
     for sequence in sequences:
         seq_dir = folder / f"seq-{sequence:02d}"
         for image in sequence_images(seq_dir, source):
             stem = image.name.split(".")[0]
+            name = f"{seq_dir.name}/{stem}"
+            if reference is not None:
+                number = frame_number(stem)
+                line = None if number is None else reference.get(sequence, number)
+                if line is None:
+                    missing.append(name)
+                    continue
+                posed.append((name, image, line.pose))
+                focals[name] = line.focal
+                continue
             pose_path = seq_dir / f"{stem}.pose.txt"
             try:
                 pose = pose_from_matrix(read_pose_file(pose_path), source=str(pose_path))
             except DataError as error:
                 on_error.handle(error)
                 continue
-            posed.append((f"{seq_dir.name}/{stem}", image, pose))
+            posed.append((name, image, pose))
+    if missing:
+        note_missing_lines(reference.path, missing, len(posed))
     if not posed:  # every pose skipped: nothing to give a camera to
         return []
     # One pair of cameras for the scene: 7-Scenes' frames all come from one Kinect.
     cameras = scene_cameras(folder, [image for _, image, _ in posed], intrinsics_for, colour_focal)
     pose_to_colour = cameras.depth_to_colour if poses_of == "depth" else None
+    reference_cameras: dict[float, PinholeCamera] = {}
     frames = []
     for name, image, pose in posed:
+        colour = cameras.colour
+        if name in focals:
+            colour = reference_cameras.setdefault(
+                focals[name], centred_camera(focals[name], colour.width, colour.height)
+            )
         # The depth sensor's camera is the Kinect's whether or not this copy has
         # the frame's depth map.
         frames.append(
@@ -371,7 +434,7 @@ def load_sevenscenes(
                 name,
                 image,
                 pose,
-                camera=cameras.colour,
+                camera=colour,
                 depth_path=existing_depth(image),
                 depth_camera=cameras.depth,
                 depth_to_colour=cameras.depth_to_colour,
@@ -396,6 +459,8 @@ class SevenScenes:
             module).
         colour_focal: the colour camera's focal length (pixels at 640 x 480) where no
             file describes it; None: SEVENSCENES_COLOUR's (525).
+        pgt: a pseudo-ground-truth file whose poses and colour cameras replace the
+            `.pose.txt` files and the nominal colour camera (see the module), or None.
     """
 
     def __init__(
@@ -408,12 +473,15 @@ class SevenScenes:
         intrinsics_for: str = "depth",
         poses_of: str = "colour",
         colour_focal: float | None = None,
+        pgt: str | None = None,
     ) -> None:
         self.intrinsics_for = checked_sensor(intrinsics_for)
         colour_camera(colour_focal)  # checked before any file is read
         self.colour_focal = colour_focal
         self.poses_of = checked_pose_sensor(poses_of)
+        check_pgt_options(pgt, self.poses_of, colour_focal, self.intrinsics_for)
         self.folder = scene_folder(root, scene)
+        self.reference = None if pgt is None else read_pseudo_ground_truth(pgt_path(pgt))
         self.on_error = OnError(on_error)
         self.sequences = {
             "train": checked_sequences("train_sequences", train_sequences),
@@ -440,6 +508,7 @@ class SevenScenes:
             self.intrinsics_for,
             self.poses_of,
             self.colour_focal,
+            self.reference,
         )
 
     def split_source(self, split: str) -> str:
@@ -462,3 +531,38 @@ def checked_sequences(key: str, values: Sequence[int] | None) -> list[int] | Non
             raise ConfigError(f"dataset.{key}: sequence numbers are integers >= 1, got {value!r}")
         numbers.append(value)
     return numbers
+
+
+def pgt_path(pgt: object) -> Path:
+    """dataset.pgt as a path; a ConfigError for anything but a non-empty string."""
+    if not isinstance(pgt, (str, Path)) or str(pgt) == "":
+        raise ConfigError(f"dataset.pgt must be the path of a pose file, got {pgt!r}")
+    return Path(pgt).expanduser()
+
+
+def check_pgt_options(
+    pgt: object, poses_of: str, colour_focal: object, intrinsics_for: str
+) -> None:
+    """Refuse the options a pseudo-ground-truth file makes meaningless, naming them:
+    its poses are the colour camera's (poses_of), its lines give the colour camera's
+    focal length (colour_focal), and so camera-intrinsics.txt can only be the depth
+    camera's (intrinsics_for)."""
+    if pgt is None:
+        return
+    clashes = []
+    if poses_of != "colour":
+        clashes.append(f"dataset.poses_of={poses_of} (the file's poses are the colour camera's)")
+    if colour_focal is not None:
+        clashes.append(
+            f"dataset.colour_focal={colour_focal} (each line gives the colour camera's "
+            "focal length)"
+        )
+    if intrinsics_for != "depth":
+        clashes.append(
+            f"dataset.intrinsics_for={intrinsics_for} (the file gives the colour camera; "
+            "camera-intrinsics.txt can only describe the depth camera)"
+        )
+    if clashes:
+        raise ConfigError(
+            f"dataset.pgt={pgt} does not go with " + " or ".join(clashes) + ": leave it out"
+        )
