@@ -105,12 +105,13 @@ def read_pseudo_ground_truth(path: str | Path) -> PseudoGroundTruth:
         focal = values[7]
         if not math.isfinite(focal) or focal <= 0:
             raise DataError(f"{source}: focal length f must be a positive number, got {focal}")
+        pose = colmap_to_pose(values[:4], values[4:7], source)
         if key in poses:
             raise DataError(
                 f"{source}: {fields[0]!r} is sequence {key[0]} frame {key[1]} again "
                 f"(first at {poses[key].source})"
             )
-        poses[key] = ReferencePose(colmap_to_pose(values[:4], values[4:7], source), focal, source)
+        poses[key] = ReferencePose(pose, focal, source)
     if not poses:
         raise DataError(f"{path}: holds no pose lines")
     return PseudoGroundTruth(path, poses)
