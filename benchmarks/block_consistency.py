@@ -39,6 +39,7 @@ from common import LazyViews, write_json  # benchmarks/, the script's own folder
 
 from relocfw.core.geometry import orientation_error_deg
 from relocfw.core.imaging import read_rgb
+from relocfw.data.pseudo_ground_truth import read_pseudo_ground_truth
 from relocfw.data.sevenscenes import load_sevenscenes
 from relocfw.structure import build_from_depth, keyframes_by_pose, localize_against
 from relocfw.structure.features import extract_rootsift
@@ -56,13 +57,22 @@ def main() -> None:
     parser.add_argument("--exclude", type=int, default=10, help="own-block frames left out")
     parser.add_argument("--near", type=float, default=0.3, help="nearest keyframe, metres")
     parser.add_argument("--max-features", type=int, default=1024)
+    parser.add_argument(
+        "--pgt",
+        type=Path,
+        default=None,
+        help="a pseudo-ground-truth file (dataset.pgt) for the poses and cameras, e.g. "
+        "pgt/redkitchen_sfm.txt: the blocks' agreement under that reference",
+    )
     parser.add_argument("--out", type=Path, required=True)
     args = parser.parse_args()
     if not DATA.is_dir():
         raise SystemExit(f"{DATA} is absent")
 
+    reference = read_pseudo_ground_truth(args.pgt) if args.pgt else None
     frames = {
-        block: load_sevenscenes(DATA, "redkitchen", "train", sequences=[block]) for block in BLOCKS
+        block: load_sevenscenes(DATA, "redkitchen", "train", sequences=[block], reference=reference)
+        for block in BLOCKS
     }
     mapped = [(block, f) for block in BLOCKS for f in frames[block][:: args.step]]
     started = time.perf_counter()
@@ -153,7 +163,8 @@ def main() -> None:
                 "mean_within_5cm_5deg": float(np.mean([r["within_5cm_5deg"] for r in chosen])),
             }
     report = {
-        "settings": vars(args) | {"out": str(args.out)},
+        "settings": vars(args) | {"out": str(args.out), "pgt": str(args.pgt) if args.pgt else None},
+        "pose_reference": str(args.pgt) if args.pgt else "the .pose.txt files (KinectFusion)",
         "machine": platform.processor() or platform.machine(),
         "map_images": len(mapped),
         "build_seconds": round(build_seconds, 1),
