@@ -598,7 +598,8 @@ def replace_block(text: str, start: str, end: str, block: str, path: Path) -> st
         raise SourceError(f"{path}: expected one {start!r} and one {end!r}")
     head, rest = text.split(start, 1)
     _, tail = rest.split(end, 1)
-    return f"{head}{start}\n{block}{end}{tail}"
+    # Blank lines around the block: Markdown ends a table or a list only at one.
+    return f"{head}{start}\n\n{block}\n{end}{tail}"
 
 
 def rewritten_readme(text: str) -> str:
