@@ -93,10 +93,17 @@ def summary_csv(summaries: Sequence[dict[str, Any]]) -> str:
 
 
 def write_results(
-    results: Sequence[MethodResult], run_dir: Path, name: str = "", unit: PositionUnit = METRES
+    results: Sequence[MethodResult],
+    run_dir: Path,
+    name: str = "",
+    unit: PositionUnit = METRES,
+    split: dict[str, Any] | None = None,
 ) -> str:
     """results{name}.csv (per query), summary{name}.json and .csv (per method) and
     table{name}.txt; returns the table.
+
+    With `split` (relocfw.app.split_record), every row of summary{name}.json carries
+    it as `split`: the sequences and the poses the numbers come from.
 
     Each file names the positions' unit as it is written: table{name}.txt starts with
     the unit's note, every summary row (JSON and CSV) carries it as `units_note`, and
@@ -107,7 +114,8 @@ def write_results(
     rows = [relabel_row(summary, unit) | json_note(unit) for summary in summaries]
     run_dir = Path(run_dir)
     write_text_atomic(per_image_csv(results, unit), run_dir / f"results{name}.csv")
-    write_text_atomic(strict_json(rows), run_dir / f"summary{name}.json")
+    recorded = rows if split is None else [row | {"split": split} for row in rows]
+    write_text_atomic(strict_json(recorded), run_dir / f"summary{name}.json")
     write_text_atomic(summary_csv(rows), run_dir / f"summary{name}.csv")
     table = format_table(summaries, unit)
     write_text_atomic(text_note(unit) + table + "\n", run_dir / f"table{name}.txt")

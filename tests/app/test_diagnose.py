@@ -168,6 +168,11 @@ def test_cli_diagnose_writes_table_windows_and_figures(tmp_path):
     assert report["settings"]["scene"] == "synthetic"  # no dataset.scene: the dataset's name
     assert report["settings"]["query_batch_size"] == 16  # query.batch_size=null: the default
     assert (run_dir / "diagnose.md").read_text() in result.stdout
+    # The map's and the queries' sequences and the poses they are scored against.
+    split = report["split"]
+    assert (split["train_sequences"], split["test_sequences"]) == ([1, 2], [3])
+    assert split["pose_reference"]["kind"] == "dataset poses"
+    assert "Sequences: map 1, 2; test 3; poses: dataset poses (" in result.stdout
     with open(run_dir / "diagnose_windows.csv") as stream:
         rows = list(csv.DictReader(stream))
     assert len(rows) == 4 * 13

@@ -50,6 +50,15 @@ def test_bounds_are_calibrated_stored_and_written_by_localize(tmp_path):
     assert row["median_position_bound_m"] > 0
     # The network's own row has no bounds: the calibration belongs to the method.
     assert "position_bound_coverage" not in summary["posenet (centre crop)"]
+    # The results say which frames were held out as validation: the last training lap
+    # and the frame before it, in recording order.
+    block = row["split"]["validation"]["calibration_block"]
+    assert block == {
+        "frames": 13,
+        "first": "seq-02/frame-000011",
+        "last": "seq-03/frame-000011",
+        "sequences": [2, 3],
+    }
     written = rows_of(run_dir / "results.csv", method)
     bounds = [float(r["position_bound_m"]) for r in written]
     assert all(b > 0 for b in bounds) and not any(np.isnan(bounds))

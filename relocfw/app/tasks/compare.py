@@ -26,6 +26,12 @@ from relocfw.app.hydra_errors import COMPOSITION_ERRORS, one_line
 from relocfw.app.methods import build, build_method, scene_name
 from relocfw.app.results import fit_method, run_method, safe_name, write_results
 from relocfw.app.spellings import rewrite
+from relocfw.app.split_record import (
+    check_validation_run,
+    split_line,
+    split_record,
+    validation_for_option,
+)
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.training_runs import prepare_model
 from relocfw.app.validation_block import calibrate_options, carve_validation
@@ -82,6 +88,13 @@ def row_label(name: str, overrides: list[str], method_cfg: DictConfig) -> str:
     samples = int(method_cfg.backbone.get("mc_samples", 0))
     asked = any(o.startswith(("backbone.mc_samples", "backbone=")) for o in overrides)
     return f"{name} (x{samples} MC dropout)" if samples and not asked else name
+
+
+def plain(value: Any) -> Any:
+    """An option's value with OmegaConf's lists and dicts as Python's."""
+    if OmegaConf.is_config(value):
+        return OmegaConf.to_container(value, resolve=True)
+    return value
 
 
 def seed_list(cfg: DictConfig, key: str) -> list[int] | None:
@@ -220,6 +233,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         raise ConfigError(f"compare.reference={reference!r} is not in compare.methods")
     seeds = training_seeds(cfg)
     crop_seeds = seed_list(cfg, "crop_seeds") or []
+    validation_for = validation_for_option(plain(cfg.compare.get("validation_for")))
     quiet = bool(cfg.quiet)
     round_robin = cfg.compare.get("round_robin", False)
     if not isinstance(round_robin, bool):
@@ -246,7 +260,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
     results = {seed: {} for seed in seeds}
     seed_runs = {seed: {} for seed in seeds}
     maps = {seed: {} for seed in seeds}
-    training, floors = {}, {}
+    training, floors, splits = {}, {}, {}
     units: dict[str, PositionUnit] = {}
     for scene in scenes:
         first_cfg, first_choices = plans[seeds[0], scene, next(iter(methods))]
@@ -255,9 +269,12 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         units[label] = unit_of(dataset)
         unit = one_unit(units)  # a mixed list fails before this scene trains
         train = load_split(dataset, "train", quiet)
-        train, calibration = carve_validation(first_cfg, train)
         test = load_split(dataset, "test", quiet)
+        if validation_for is not None:  # before any row of the scene trains
+            check_validation_run(dataset, train[0], test[0], validation_for)
+        train, calibration = carve_validation(first_cfg, train)
         write_skipped(dataset, run_dir)
+        splits[label] = split_record(dataset, train[0], test[0], calibration, validation_for)
         training[label] = train[0]
         floors[label] = constant_answer("mean training pose", mean_pose(train[0]), test[0])
         for seed in seeds:
@@ -315,10 +332,17 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
             seed=seed,
             seed_runs=seed_runs[seed],
             unit=unit,
+            splits=splits,
         )
     if len(seeds) > 1:
         write_seed_comparison(
-            results, floors, rows[reference], run_dir, bootstrap_seed=seeds[0], unit=unit
+            results,
+            floors,
+            rows[reference],
+            run_dir,
+            bootstrap_seed=seeds[0],
+            unit=unit,
+            splits=splits,
         )
     if unit.note:
         print(f"note: {unit.note}")
@@ -414,6 +438,7 @@ def write_comparison(
     seed: int = 0,
     seed_runs: Mapping[str, Mapping[str, Mapping[int, MethodResult]]] | None = None,
     unit: PositionUnit = METRES,
+    splits: Mapping[str, dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """Table 1 (Markdown + CSV, printed), per-scene results and the five figures.
 
@@ -423,21 +448,27 @@ def write_comparison(
             comparison.json.
         unit: the positions' unit; the Markdown files start with its note, the JSON
             carries it as `units_note`, the CSV has the unit in its column titles.
+        splits: scene -> its split record (relocfw.app.split_record): comparison.json
+            holds them as `splits`, each scene's summary JSON as `split`, and the
+            Markdown files say them in one line per scene.
 
     Returns:
         What comparison.json holds.
     """
     run_dir = Path(run_dir)
+    splits = splits or {}
     header, rows = table_rows(median_errors(results), reference, unit)
     markdown = as_markdown(header, rows)
-    write_text_atomic(text_note(unit) + markdown, run_dir / "comparison.md")
+    write_text_atomic(text_note(unit) + split_lines(splits) + markdown, run_dir / "comparison.md")
     write_text_atomic(as_csv(header, rows), run_dir / "comparison.csv")
     print(
         f"\nMedian position ({unit.name}) and orientation (deg) errors; "
         "average = mean over scenes\n"
     )
-    print(markdown)
+    print(split_lines(splits) + markdown)
     summary: dict[str, Any] = {**json_note(unit), "reference": reference, "scenes": {}}
+    if splits:
+        summary["splits"] = dict(splits)
     written = []
     for scene, by_method in results.items():
         name = safe_name(scene)
@@ -445,7 +476,9 @@ def write_comparison(
         floor = constant_answer(
             "mean training pose", mean_pose(training_frames[scene]), method_results[0].frames
         )
-        table = write_results([floor, *method_results], run_dir, name=f"_{name}", unit=unit)
+        table = write_results(
+            [floor, *method_results], run_dir, name=f"_{name}", unit=unit, split=splits.get(scene)
+        )
         print(f"{scene}:\n{table}\n")
         title = f"({scene})"
         out = run_dir / name
@@ -526,7 +559,7 @@ def write_comparison(
     }
     if spreads:
         table = crop_seed_markdown(spreads, unit)
-        write_text_atomic(text_note(unit) + table, run_dir / "crop_seeds.md")
+        write_text_atomic(text_note(unit) + split_lines(splits) + table, run_dir / "crop_seeds.md")
         print("\nSpread of the medians over crop-search seeds (same model and map):\n")
         print(table)
         for scene, by_method in spreads.items():
@@ -559,26 +592,43 @@ def write_seed_comparison(
     run_dir: Path,
     bootstrap_seed: int = 0,
     unit: PositionUnit = METRES,
+    splits: Mapping[str, dict[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """comparison.md / .csv / .json at the top of the run: the spread over training seeds
     and each method's paired test against `reference` (printed too).
+
+    With `splits` (scene -> split record), comparison.json holds them as `splits` and
+    comparison.md says them in one line per scene.
 
     Returns:
         What comparison.json holds (keys in `unit`'s terms).
     """
     run_dir = Path(run_dir)
+    splits = splits or {}
     seeds = sorted(results)
     table = seed_comparison(results, floors, reference, bootstrap_seed)
     markdown, csv_text = seed_tables(table, reference, seeds, unit)
-    write_text_atomic(text_note(unit) + markdown, run_dir / "comparison.md")
+    write_text_atomic(text_note(unit) + split_lines(splits) + markdown, run_dir / "comparison.md")
     write_text_atomic(csv_text, run_dir / "comparison.csv")
     scenes = {
         scene: {method: relabel_tree(stats, unit) for method, stats in by_method.items()}
         for scene, by_method in table.items()
     }
     report = {**json_note(unit), "reference": reference, "seeds": seeds, "scenes": scenes}
+    if splits:
+        report["splits"] = dict(splits)
     write_text_atomic(strict_json(report), run_dir / "comparison.json")
     print(f"\nOver training seeds {seeds} (each seed's tables and figures: seed_<n>/)\n")
-    print(markdown)
+    print(split_lines(splits) + markdown)
     print(f"comparison over seeds: {run_dir / 'comparison.md'}")
     return report
+
+
+def split_lines(splits: Mapping[str, dict[str, Any]]) -> str:
+    """Each scene's sequences and reference, one line each, above a Markdown table
+    ("" without records)."""
+    if not splits:
+        return ""
+    named = len(splits) > 1
+    lines = [split_line(record, scene if named else None) for scene, record in splits.items()]
+    return "\n".join(lines) + "\n\n"

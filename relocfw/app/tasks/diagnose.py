@@ -22,6 +22,7 @@ from omegaconf import DictConfig
 
 from relocfw.app.engines import on_engine
 from relocfw.app.methods import dataset_settings, scene_name
+from relocfw.app.split_record import split_line, split_record
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.tasks.train import trained
 from relocfw.core.json_output import strict_json
@@ -148,6 +149,7 @@ def write_diagnosis(
     curve_queries: int = 4,
     table3_queries: int = 3,
     unit: PositionUnit = METRES,
+    split: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """diagnose.json, diagnose.md (printed), diagnose_windows.csv and the figures.
 
@@ -160,6 +162,8 @@ def write_diagnosis(
         table3_queries: queries drawn with their crops outlined (0: no figure).
         unit: the positions' unit: diagnose.md starts with its note, diagnose.json
             carries it as `units_note`, the CSV and figures name it.
+        split: the run's split record (relocfw.app.split_record): diagnose.json
+            carries it as `split`, diagnose.md says it in one line.
 
     Returns:
         What diagnose.json holds.
@@ -169,6 +173,8 @@ def write_diagnosis(
     summary = summarise_queries(queries)
     summary["mean_windows_per_query"] = float(np.mean([q.windows for q in queries]))
     markdown = as_markdown(scene, summary, unit)
+    if split is not None:
+        markdown = split_line(split) + "\n\n" + markdown
     write_text_atomic(text_note(unit) + markdown, run_dir / "diagnose.md")
     write_text_atomic(windows_csv(queries, picks, unit), run_dir / "diagnose_windows.csv")
     title = f"({scene})"
@@ -194,6 +200,7 @@ def write_diagnosis(
     report = {
         **json_note(unit),
         "settings": settings,
+        **({"split": split} if split is not None else {}),
         # The scene's name is the user's; below it every key is a report key.
         "scenes": {scene: relabel_tree(summary, unit)},
         "figures": [str(p) for p in written],
@@ -269,4 +276,5 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
         curve_queries,
         table3_queries,
         unit=unit_of(done.dataset),
+        split=split_record(done.dataset, done.train[0], test[0], done.calibration),
     )

@@ -14,6 +14,7 @@ from relocfw.app.config_schema import Baseline, name_of
 from relocfw.app.engines import keep_graphs_beside, on_engine
 from relocfw.app.methods import centre_label, dataset_settings, scene_name
 from relocfw.app.results import Split, fit_method, run_method, write_results
+from relocfw.app.split_record import split_record
 from relocfw.app.splits import load_split, write_skipped
 from relocfw.app.tasks.train import trained
 from relocfw.app.validation_block import held_out_count
@@ -42,10 +43,12 @@ def relocalize(
     quiet: bool = False,
     unit: PositionUnit = METRES,
     calibration: Calibration | None = None,
+    split: dict | None = None,
 ) -> list[MethodResult]:
     """The main job after training: the method and its baselines, results written
-    with the positions' `unit` (relocfw.report.units.unit_of the dataset). With a
-    `calibration` block, the method's answers carry calibrated error bounds."""
+    with the positions' `unit` (relocfw.report.units.unit_of the dataset) and the run's
+    `split` record (relocfw.app.split_record). With a `calibration` block, the method's
+    answers carry calibrated error bounds."""
     results = []
     if "mean_pose" in baselines:
         results.append(constant_answer("mean training pose", mean_pose(train[0]), test[0]))
@@ -68,7 +71,7 @@ def relocalize(
         # The map is already fitted; only the queries run again.
         results.append(evaluate(centre_label, centre, *test, quiet=quiet))
     results.append(method_result)
-    print(write_results(results, run_dir, unit=unit))
+    print(write_results(results, run_dir, unit=unit, split=split))
     print(f"\nresults: {Path(run_dir) / 'results.csv'}, {Path(run_dir) / 'summary.json'}")
     if unit.note:
         print(f"note: {unit.note}")
@@ -113,6 +116,7 @@ def run(cfg: DictConfig, device: torch.device, world: World | None) -> None:
             quiet=quiet,
             unit=unit_of(done.dataset),
             calibration=done.calibration,
+            split=split_record(done.dataset, done.train[0], test[0], done.calibration),
         )
     metadata = {
         "method": method.label,
