@@ -1,4 +1,4 @@
-"""The families table (issue 45, point 3; docs/results/families.md): the rows of
+"""The families table (docs/results/families.md): the rows of
 `relocfw task=compare methods=families` (3 training seeds, round robin, paired
 against PoseNet), grouped by the paper's three families, beside what each row costs
 to build and ship (benchmarks/family_costs.py).
@@ -24,6 +24,7 @@ from pathlib import Path
 import yaml
 from common import write_json  # benchmarks/, the script's own folder
 
+from relocfw.data.sevenscenes import SPLIT_FILES, read_split, scene_folder
 from relocfw.model.checkpoints import write_text_atomic
 from relocfw.report.comparison import as_markdown
 from relocfw.report.seed_comparison import paired_cell
@@ -162,8 +163,53 @@ def split_table(name: str, run: Path, costs: dict | None) -> tuple[str, dict]:
             "vs_posenet": paired,
             "costs": cost,
         }
-    markdown = f"### {name}\n\n" + as_markdown(HEADER, rows)
-    return markdown, {"run": str(run), "seeds": seeds, "scene": scene, "methods": report}
+    split = run_split(run, comparison, scene)
+    markdown = f"### {name}\n\n{split_line(split)}\n\n" + as_markdown(HEADER, rows)
+    return markdown, {
+        "run": str(run),
+        "seeds": seeds,
+        "scene": scene,
+        "split": split,
+        "methods": report,
+    }
+
+
+def run_split(run: Path, comparison: dict, scene: str) -> dict:
+    """The run's map and test sequences and pose reference: comparison.json's `splits`
+    record where the run wrote one, else read from the options it ran with
+    (.hydra/config.yaml: dataset.train_sequences, test_sequences and pgt)."""
+    recorded = comparison.get("splits", {}).get(scene)
+    if recorded is not None:
+        return recorded
+    config = run / ".hydra" / "config.yaml"
+    if not config.is_file():
+        sys.exit(f"{run}: neither comparison.json's splits nor {config} says its sequences")
+    dataset = yaml.safe_load(config.read_text())["dataset"]
+    pgt = dataset.get("pgt")
+    folder = scene_folder(dataset["root"], dataset.get("scene"))
+    return {
+        "train_sequences": dataset.get("train_sequences")
+        or read_split(folder / SPLIT_FILES["train"]),
+        "validation": None,
+        "test_sequences": dataset.get("test_sequences") or read_split(folder / SPLIT_FILES["test"]),
+        "pose_reference": {"kind": "pgt", "file": pgt}
+        if pgt
+        else {"kind": "dataset poses", "poses_of": dataset.get("poses_of", "colour")},
+    }
+
+
+def split_line(split: dict) -> str:
+    """One line naming a table's map and query sequences and its pose reference."""
+    reference = split["pose_reference"]
+    poses = (
+        f"`{Path(reference['file']).name}`"
+        if reference.get("kind") == "pgt"
+        else "the `.pose.txt` files"
+    )
+    return (
+        f"Map sequences {split['train_sequences']}, queries {split['test_sequences']}, "
+        f"poses and scoring: {poses}."
+    )
 
 
 def colmap_rows(path: Path) -> str:
