@@ -1,6 +1,6 @@
-"""What each family costs to build and to ship (issue 45, point 3): the network's
-training, the map's or head's fit, and the model file's bytes, for every row of
-conf/methods/families.yaml (docs/results/families.md).
+"""What each family costs to build and to ship: the network's training, the map's or
+head's fit, and the model file's bytes, for every row of a methods file (--methods,
+default conf/methods/families.yaml; docs/results/families.md).
 
 Each row is composed as `relocfw task=compare methods=families` composes it (the
 command line's overrides, then the row's), built with relocfw's own CLI functions
