@@ -232,9 +232,10 @@ DIAGNOSE = {s: COMPARISONS / f"{s}_diagnose.md" for s in ("near", "far")}
 SOURCES = {
     "families": (
         "the families run",
-        "`benchmarks/results/families.json` (`methods=families_first_choices`: near and far, 3 seeds, "
-        "the 11 rows taking turns query by query, network on onnxruntime, the machine to "
-        "itself); trust signals from its `docs/results/redkitchen/*_families_comparison.md`",
+        "`benchmarks/results/families.json` (`methods=families_first_choices`: near and "
+        "far, 3 seeds, the 11 rows taking turns query by query, network on onnxruntime, "
+        "the machine to itself); trust signals from its "
+        "`docs/results/redkitchen/*_families_comparison.md`",
     ),
     "rematch-results": (
         "which solve answers",
