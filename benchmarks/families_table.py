@@ -24,6 +24,7 @@ from pathlib import Path
 import yaml
 from common import write_json  # benchmarks/, the script's own folder
 
+from relocfw.app.split_record import SEVENSCENES_POSE_FILES, sha256_of, split_line
 from relocfw.data.sevenscenes import SPLIT_FILES, read_split, scene_folder
 from relocfw.model.checkpoints import write_text_atomic
 from relocfw.report.comparison import as_markdown
@@ -175,9 +176,10 @@ def split_table(name: str, run: Path, costs: dict | None) -> tuple[str, dict]:
 
 
 def run_split(run: Path, comparison: dict, scene: str) -> dict:
-    """The run's map and test sequences and pose reference: comparison.json's `splits`
-    record where the run wrote one, else read from the options it ran with
-    (.hydra/config.yaml: dataset.train_sequences, test_sequences and pgt)."""
+    """The run's split record (relocfw.app.split_record): comparison.json's `splits`
+    where the run wrote one, else made from the options it ran with
+    (.hydra/config.yaml: dataset.train_sequences, test_sequences, poses_of and pgt;
+    a run of a families table is a test run, so no validation queries)."""
     recorded = comparison.get("splits", {}).get(scene)
     if recorded is not None:
         return recorded
@@ -185,31 +187,25 @@ def run_split(run: Path, comparison: dict, scene: str) -> dict:
     if not config.is_file():
         sys.exit(f"{run}: neither comparison.json's splits nor {config} says its sequences")
     dataset = yaml.safe_load(config.read_text())["dataset"]
-    pgt = dataset.get("pgt")
     folder = scene_folder(dataset["root"], dataset.get("scene"))
-    return {
-        "train_sequences": dataset.get("train_sequences")
-        or read_split(folder / SPLIT_FILES["train"]),
-        "validation": None,
-        "test_sequences": dataset.get("test_sequences") or read_split(folder / SPLIT_FILES["test"]),
-        "pose_reference": {"kind": "pgt", "file": pgt}
-        if pgt
-        else {"kind": "dataset poses", "poses_of": dataset.get("poses_of", "colour")},
-    }
-
-
-def split_line(split: dict) -> str:
-    """One line naming a table's map and query sequences and its pose reference."""
-    reference = split["pose_reference"]
-    poses = (
-        f"`{Path(reference['file']).name}`"
-        if reference.get("kind") == "pgt"
-        else "the `.pose.txt` files"
-    )
-    return (
-        f"Map sequences {split['train_sequences']}, queries {split['test_sequences']}, "
-        f"poses and scoring: {poses}."
-    )
+    record = {"validation": None}
+    for split in ("train", "test"):
+        chosen = dataset.get(f"{split}_sequences")
+        record[f"{split}_sequences"] = chosen or read_split(folder / SPLIT_FILES[split])
+        record[f"{split}_source"] = (
+            f"dataset.{split}_sequences" if chosen else str(folder / SPLIT_FILES[split])
+        )
+    pgt = dataset.get("pgt")
+    if pgt:
+        reference = {"kind": "pgt", "file": pgt, "sha256": sha256_of(Path(pgt))}
+    else:
+        reference = {
+            "kind": "dataset poses",
+            "file": str(folder / SEVENSCENES_POSE_FILES),
+            "sha256": None,
+            "poses_of": dataset.get("poses_of", "colour"),
+        }
+    return record | {"pose_reference": reference}
 
 
 def colmap_rows(path: Path) -> str:

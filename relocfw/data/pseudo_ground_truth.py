@@ -1,7 +1,7 @@
 """Pose files in the format of Brachmann et al.'s pseudo ground truths.
 
 Brachmann, Humenberger, Rother and Sattler, "On the Limits of Pseudo Ground Truth in
-Visual Camera Re-localisation" (ICCV 2021), published 7-Scenes' and 12-Scenes' poses
+Visual Camera Re-localisation" (ICCV 2021), published 7-Scenes' (and 12-Scenes') poses
 twice: from structure-from-motion (COLMAP, "SfM") and the datasets' own depth SLAM
 poses re-expressed for the colour camera ("DSLAM"). Both use one line per image:
 
@@ -11,7 +11,9 @@ with (q, t) world-to-camera as COLMAP writes it (x_camera = R(q) x_world + t), t
 COLOUR camera's pose, and f that camera's focal length in pixels (principal point at
 the image centre). `rgb_file` is matched to a frame by its sequence and frame number
 (`seq-01/frame-000123.color.png` is sequence 1, frame 123), whatever its extension, so
-a copy that re-encoded the images still finds its lines.
+a copy that re-encoded the images still finds its lines. relocfw reads such files
+for datasets in the 7-Scenes layout (relocfw.data.sevenscenes); it has no 12-Scenes
+loader.
 
 The file is data: every line is checked (nine fields, finite numbers, a unit
 quaternion, a positive focal length, one line per frame) and its size is bounded
@@ -34,7 +36,8 @@ from relocfw.data.text import data_lines, numbers
 # 7-Scenes' largest scene has 26 000 frames (about 3 MB of lines); a pose file many times
 # that is not one, and is refused before it is read into memory.
 MAX_FILE_BYTES = 64 * 2**20
-FRAME_NAME = re.compile(r"seq-?(\d+)[/\\]frame-(\d+)", re.IGNORECASE)
+# The name's last two parts: `seq-01/frame-000123.color.png` (any folder before them).
+FRAME_NAME = re.compile(r"(?:^|[/\\])seq-?(\d+)[/\\]frame-(\d+)[^/\\]*$", re.IGNORECASE)
 FIELDS = 9  # rgb_file, qw qx qy qz, tx ty tz, f
 
 
@@ -63,6 +66,10 @@ class PseudoGroundTruth:
     def get(self, sequence: int, frame: int) -> ReferencePose | None:
         """The line of sequence `sequence`'s frame `frame`, or None where there is none."""
         return self.lines.get((sequence, frame))
+
+    def has_sequence(self, sequence: int) -> bool:
+        """Whether any line is a frame of sequence `sequence`."""
+        return any(key[0] == sequence for key in self.lines)
 
 
 def frame_key(name: str) -> tuple[int, int] | None:

@@ -487,16 +487,28 @@ class SevenScenes:
             "train": checked_sequences("train_sequences", train_sequences),
             "test": checked_sequences("test_sequences", test_sequences),
         }
-        if train_sequences is not None or test_sequences is not None:
-            # The effective lists, a split file standing in for the list not given.
-            train = self.sequences["train"] or read_split(self.folder / SPLIT_FILES["train"])
-            test = self.sequences["test"] or read_split(self.folder / SPLIT_FILES["test"])
-            if set(train) & set(test):
-                raise ConfigError(
-                    f"dataset.train_sequences / dataset.test_sequences: train {train} and "
-                    f"test {test} share {sorted(set(train) & set(test))}: a test frame "
-                    "would be in the map"
-                )
+        # The effective lists, a split file standing in for the list not given (a
+        # missing split file is reported when its split is loaded).
+        effective = {split: self.effective_sequences(split) for split in SPLIT_FILES}
+        train, test = effective["train"], effective["test"]
+        if train is not None and test is not None and set(train) & set(test):
+            raise ConfigError(
+                f"{self.split_source('train')} and {self.split_source('test')}: train "
+                f"{train} and test {test} share {sorted(set(train) & set(test))}: a test "
+                "frame would be in the map"
+            )
+        if self.reference is not None:
+            for split, sequences in effective.items():
+                check_reference_covers(self.reference, sequences, self.split_source(split))
+
+    def effective_sequences(self, split: str) -> list[int] | None:
+        """The split's sequence numbers: the option's, else its split file's, else None
+        (no split file: loading the split says so)."""
+        chosen = self.sequences[split]
+        if chosen is not None:
+            return chosen
+        path = self.folder / SPLIT_FILES[split]
+        return read_split(path) if path.is_file() else None
 
     def frames(self, split: str) -> list[Frame]:
         return load_sevenscenes(
@@ -565,4 +577,20 @@ def check_pgt_options(
     if clashes:
         raise ConfigError(
             f"dataset.pgt={pgt} does not go with " + " or ".join(clashes) + ": leave it out"
+        )
+
+
+def check_reference_covers(
+    reference: PseudoGroundTruth, sequences: Sequence[int] | None, source: str
+) -> None:
+    """Refuse, before anything is trained, a pseudo-ground-truth file without a single
+    line for one of a split's sequences: that split would lose the whole sequence (a
+    file of only the training or only the test frames, as the published
+    `*_train.txt` / `*_test.txt` files are)."""
+    absent = [number for number in sequences or () if not reference.has_sequence(number)]
+    if absent:
+        raise DataError(
+            f"{reference.path} (dataset.pgt) has no line for sequence(s) {absent} of "
+            f"{source}; where the reference comes as separate train and test files, "
+            "join them into one (cat TRAIN TEST > FILE)"
         )

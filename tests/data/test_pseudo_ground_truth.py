@@ -202,3 +202,26 @@ def test_the_command_maps_and_scores_against_the_file(tiny_scene, tmp_path):
     assert bad.returncode != 0
     assert f"file not found: {tmp_path / 'absent.txt'}" in bad.stderr
     assert "Traceback" not in bad.stderr
+
+
+def test_split_files_that_share_a_sequence_are_refused(tiny_scene, tmp_path):
+    """Not only the options: split files that put one sequence in map and queries are
+    refused too (a validation run there would score frames its map holds)."""
+    scene = tmp_path / "room"
+    shutil.copytree(tiny_scene, scene)
+    (scene / "TrainSplit.txt").write_text("sequence1\nsequence2\n")
+    (scene / "TestSplit.txt").write_text("sequence2\n")
+    with pytest.raises(ConfigError, match=r"share \[2\]: a test frame would be in the map"):
+        SevenScenes(str(scene), None)
+
+
+def test_a_file_without_a_splits_sequence_is_refused_before_training(tiny_scene, tmp_path):
+    """The published references come as *_train.txt and *_test.txt: one of them alone
+    leaves a split without poses, said when the dataset is made (not after training)."""
+    path = tmp_path / "train_only.txt"
+    truth = write_pgt(tiny_scene, path)
+    lines = [line for line in path.read_text().splitlines() if not line.startswith("seq-03/")]
+    path.write_text("\n".join(lines) + "\n")
+    assert len(lines) < len(truth)
+    with pytest.raises(DataError, match=r"has no line for sequence\(s\) \[3\] of .*TestSplit.txt"):
+        SevenScenes(str(tiny_scene), None, pgt=str(path))
