@@ -244,6 +244,7 @@ def scene_cameras(
     images: Sequence[Path],
     intrinsics_for: str = "depth",
     colour_focal: float | None = None,
+    colour_given: bool = False,
 ) -> SceneCameras:
     """The cameras of a scene's images and depth maps.
 
@@ -256,6 +257,8 @@ def scene_cameras(
             scaled to the same size. Not used where the depth is registered.
         colour_focal: the colour camera's focal length (pixels at 640 x 480) where no
             file describes the colour camera; None: SEVENSCENES_COLOUR's.
+        colour_given: the colour camera comes from elsewhere (a pseudo-ground-truth
+            file's lines), so a missing file's note names only the depth camera.
 
     Raises:
         DataError: naming the intrinsics file when it is malformed.
@@ -273,10 +276,13 @@ def scene_cameras(
             "already (it wins); leave colour_focal unset or the file out"
         )
     if path is None:
-        what = f"7-Scenes' Kinect colour intrinsics (fx=fy={nominal_colour.fx:g})"
-        if not registered:
-            what += " (depth: fx=fy=585)"
-        note_default_camera(folder, nominal_colour, what)
+        if colour_given and not registered:
+            note_default_camera(folder, SEVENSCENES_DEPTH, "7-Scenes' Kinect depth intrinsics")
+        elif not colour_given:
+            what = f"7-Scenes' Kinect colour intrinsics (fx=fy={nominal_colour.fx:g})"
+            if not registered:
+                what += " (depth: fx=fy=585)"
+            note_default_camera(folder, nominal_colour, what)
         if registered:
             return SceneCameras(nominal_colour, None, None)
         return SceneCameras(nominal_colour, SEVENSCENES_DEPTH, SEVENSCENES_DEPTH_TO_COLOUR)
@@ -417,7 +423,9 @@ def load_sevenscenes(
     if not posed:  # every pose skipped: nothing to give a camera to
         return []
     # One pair of cameras for the scene: 7-Scenes' frames all come from one Kinect.
-    cameras = scene_cameras(folder, [image for _, image, _ in posed], intrinsics_for, colour_focal)
+    cameras = scene_cameras(
+        folder, [image for _, image, _ in posed], intrinsics_for, colour_focal, bool(focals)
+    )
     pose_to_colour = cameras.depth_to_colour if poses_of == "depth" else None
     reference_cameras: dict[float, PinholeCamera] = {}
     frames = []
