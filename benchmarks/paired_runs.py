@@ -127,8 +127,11 @@ def compare_pair(new: tuple[Path, str], old: tuple[Path, str]) -> dict[str, obje
     old_frames, old_errors, old_flags = side(*old, seeds)
     if new_frames != old_frames:
         raise DataError(f"{new[0]} and {old[0]}: the two rows answered different queries")
+    splits = {"new": run_split(new[0]), "old": run_split(old[0])}
+    check_same_scoring(new[0], old[0], splits["new"], splits["old"])
     result: dict[str, object] = {
         "seeds": seeds,
+        "splits": splits,
         "new": {
             "run": str(new[0]),
             "method": new[1],
@@ -145,6 +148,33 @@ def compare_pair(new: tuple[Path, str], old: tuple[Path, str]) -> dict[str, obje
     for number, kind in enumerate(ERRORS):
         result[kind] = paired_test(new_errors[..., number], old_errors[..., number], seed=0)
     return result
+
+
+def run_split(run: Path) -> dict | None:
+    """The split record (relocfw.app.split_record) of a compare run's one scene, from
+    its comparison.json; None for a run written before runs recorded it."""
+    path = run / "comparison.json"
+    if not path.is_file():
+        return None
+    splits = json.loads(path.read_text()).get("splits") or {}
+    return next(iter(splits.values()), None) if len(splits) == 1 else None
+
+
+def check_same_scoring(new_run: Path, old_run: Path, new: dict | None, old: dict | None) -> None:
+    """Refuse a pair whose runs tested other sequences or scored against another pose
+    reference (the same frame names then carry other truths): a paired test needs one
+    truth per query. Runs without a record are paired as before."""
+    if new is None or old is None:
+        return
+    for key in ("test_sequences",):
+        if new[key] != old[key]:
+            raise DataError(f"{new_run} and {old_run}: {key} {new[key]} against {old[key]}")
+    mine, theirs = new["pose_reference"], old["pose_reference"]
+    if (mine["kind"], mine.get("sha256")) != (theirs["kind"], theirs.get("sha256")):
+        raise DataError(
+            f"{new_run} and {old_run} score against other pose references "
+            f"({mine['kind']} {mine.get('file')} against {theirs['kind']} {theirs.get('file')})"
+        )
 
 
 def parsed_side(text: str) -> tuple[Path, str]:

@@ -76,3 +76,20 @@ def test_a_run_without_summaries_pairs_without_costs(paired_runs, tmp_path):
         summary.unlink()
     result = paired_runs.compare_pair((run, "a"), (run, "b"))
     assert result["new"]["costs"] == {} and result["old"]["costs"] == {}
+
+
+def test_runs_scored_against_other_references_are_not_paired(paired_runs, tmp_path):
+    """The same frame names under another pose reference carry other truths."""
+    record = {
+        "test_sequences": [2, 4, 6],
+        "pose_reference": {"kind": "pgt", "file": "sfm.txt", "sha256": "aa"},
+    }
+    other = {**record, "pose_reference": {"kind": "pgt", "file": "dslam.txt", "sha256": "bb"}}
+    paired_runs.check_same_scoring(tmp_path / "a", tmp_path / "b", record, dict(record))
+    paired_runs.check_same_scoring(tmp_path / "a", tmp_path / "b", record, None)
+    with pytest.raises(DataError, match="score against other pose references"):
+        paired_runs.check_same_scoring(tmp_path / "a", tmp_path / "b", record, other)
+    with pytest.raises(DataError, match=r"test_sequences \[2, 4, 6\] against \[5, 6, 7\]"):
+        paired_runs.check_same_scoring(
+            tmp_path / "a", tmp_path / "b", record, {**record, "test_sequences": [5, 6, 7]}
+        )
