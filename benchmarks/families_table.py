@@ -28,6 +28,7 @@ from relocfw.app.split_record import SEVENSCENES_POSE_FILES, sha256_of, split_li
 from relocfw.data.sevenscenes import SPLIT_FILES, read_split, scene_folder
 from relocfw.model.checkpoints import write_text_atomic
 from relocfw.report.comparison import as_markdown
+from relocfw.report.rule_study import spread_cell
 from relocfw.report.seed_comparison import paired_cell
 
 # The methods file whose rows the table reads; each row's family follows from its
@@ -76,11 +77,6 @@ HEADER = [
     "model file (MB)",
     "median ms per query (mean of seeds)",
 ]
-
-
-def spread_cell(stats: dict, digits: int) -> str:
-    """A median over seeds as `mean +- std`."""
-    return f"{stats['mean']:.{digits}f} +- {stats['std']:.{digits}f}"
 
 
 def seed_summaries(run: Path, scene: str, seeds: list[int]) -> list[dict[str, dict]]:

@@ -36,6 +36,9 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
+from relocfw.report.rule_study import spread_cell
+from relocfw.report.statistics import spread
+
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = Path("benchmarks/results")
 COMPARISONS = Path("docs/results/redkitchen")
@@ -67,18 +70,13 @@ class Medians:
     def spread_cells(self) -> tuple[str, str]:
         """`mean +- sample std` over seeds, position then orientation."""
         return (
-            f"{mean(self.position_m):.3f} +- {stdev(self.position_m):.3f}",
-            f"{mean(self.orientation_deg):.2f} +- {stdev(self.orientation_deg):.2f}",
+            spread_cell(spread(self.position_m), 3),
+            spread_cell(spread(self.orientation_deg), 2),
         )
 
 
 def mean(values: tuple[float, ...] | list[float]) -> float:
     return statistics.fmean(values)
-
-
-def stdev(values: tuple[float, ...] | list[float]) -> float:
-    """Sample standard deviation (ddof=1), the one `+-` of the docs."""
-    return statistics.stdev(values) if len(values) > 1 else 0.0
 
 
 @cache
